@@ -1,0 +1,1 @@
+"""Everything that crosses an HDP node boundary: messages, conversions, topics, runtime."""

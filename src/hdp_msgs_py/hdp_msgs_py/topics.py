@@ -1,0 +1,35 @@
+"""Default topic names and their QoS: the one place the graph's wiring is written down.
+
+Every name is remappable (`--ros-args -r /hdp/instruction:=/my/instruction`).
+"""
+
+from .ros import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+INSTRUCTION = '/hdp/instruction'
+STATUS = '/hdp/status'
+NEXT_BEST_POSE = '/hdp/next_best_pose'
+JOINT_STATES = '/joint_states'
+ARM_TRAJECTORY = '/panda_arm_controller/joint_trajectory'
+GRIPPER_TRAJECTORY = '/panda_gripper_controller/joint_trajectory'
+TF_STATIC = '/tf_static'
+CLOCK = '/clock'
+CAMERAS = ('front', 'side')
+
+
+def color_image(camera: str) -> str:
+    return f'/camera/{camera}/color/image_raw'
+
+
+def depth_image(camera: str) -> str:
+    return f'/camera/{camera}/aligned_depth_to_color/image_raw'
+
+
+def camera_info(camera: str) -> str:
+    return f'/camera/{camera}/color/camera_info'
+
+
+# QoS as ROS 2 uses it: cameras best effort, commands and state reliable,
+# static transforms latched for late joiners.
+SENSOR_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
+COMMAND_QOS = QoSProfile(depth=10)
+LATCHED_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)

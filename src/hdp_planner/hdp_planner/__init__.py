@@ -1,0 +1,1 @@
+"""HDP high-level agent: next-best end-effector pose from language and RGB-D."""

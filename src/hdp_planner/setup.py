@@ -1,0 +1,32 @@
+from setuptools import find_packages, setup
+
+package_name = 'hdp_planner'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    install_requires=[
+        'setuptools',
+        'hdp_msgs_py',
+        'numpy',
+        'pyyaml',
+        'tqdm',
+        'torch',
+    ],
+    extras_require={'test': ['pytest']},
+    zip_safe=True,
+    maintainer='HDP-ROS developers',
+    maintainer_email='hdp-ros@example.com',
+    description='HDP high-level agent (next-best pose) and planner_node',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'planner_node = hdp_planner.planner_node:main',
+        ],
+    },
+)
