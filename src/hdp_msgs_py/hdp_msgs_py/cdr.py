@@ -31,8 +31,29 @@ class CdrError(ValueError):
     """A payload that does not decode: truncated, bad header, bad UTF-8."""
 
 
-def _pad(buf: bytearray, size: int) -> None:
-    buf.extend(bytes(-(len(buf) - _ORIGIN) % size))
+_ZEROS = [bytes(n) for n in range(8)]
+
+
+class _Writer:
+    """Collects the pieces of a payload; joined once, so a large array is copied once."""
+    __slots__ = ('parts', 'size')
+
+    def __init__(self):
+        self.parts, self.size = [HEADER], _ORIGIN
+
+    def __iadd__(self, data):
+        self.parts.append(data)
+        self.size += data.nbytes if isinstance(data, memoryview) else len(data)
+        return self
+
+    def append(self, byte: int):
+        self += _ZEROS[1] if byte == 0 else bytes((byte,))
+
+
+def _pad(buf: _Writer, size: int) -> None:
+    missing = -(buf.size - _ORIGIN) % size
+    if missing:
+        buf += _ZEROS[missing]
 
 
 def _align(pos: int, size: int) -> int:
@@ -58,7 +79,7 @@ def _numeric_bytes(field: FieldSpec, value, dtype: np.dtype) -> tuple[int, objec
         raise TypeError(f"field '{field.name}' is {field.type_string()}: {err}") from None
     if arr.ndim == 0:
         raise TypeError(f"field '{field.name}' is {field.type_string()}, got a scalar")
-    return arr.size, arr.reshape(-1).data
+    return arr.size, arr.reshape(-1).data.cast('B')
 
 
 def _encode_field(field: FieldSpec, class_of):
@@ -234,11 +255,16 @@ def compile_codec(spec: MessageSpec, class_of):
     return encode, decode
 
 
-def serialize(msg) -> bytearray:
-    """Header + CDR body of ``msg``; raises TypeError naming a bad field."""
-    buf = bytearray(HEADER)
+def serialize(msg, pad_to: int = 1) -> bytes:
+    """Header + CDR body of ``msg``, zero-padded to a multiple of ``pad_to``.
+
+    Raises TypeError naming a bad field.
+    """
+    buf = _Writer()
     type(msg)._encode(msg, buf)
-    return buf
+    if -buf.size % pad_to:
+        buf += bytes(-buf.size % pad_to)
+    return b''.join(buf.parts)
 
 
 def deserialize(cls, data):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 
 from cyclonedds.core import GuardCondition, Policy
@@ -84,7 +85,8 @@ class Context:
         with self._lock:
             if self._ok:
                 raise RuntimeError('init() called twice without shutdown()')
-            self.ros_args, self.argv = parse_ros_args(args)
+            # like rclpy, args=None means this process's command line
+            self.ros_args, self.argv = parse_ros_args(sys.argv if args is None else args)
             if self.ros_args.log_level:
                 ros_logging.set_default_level(self.ros_args.log_level)
             self.domain_id = domain_id if domain_id is not None else domain_id_from_env()
@@ -172,14 +174,13 @@ class Context:
                               writer_gid_seq=[Gid(data=g) for g in node.writer_gids()])
                      for node in self._nodes]
             info = Info(gid=Gid(data=self.participant.guid.bytes), node_entities_info_seq=nodes)
-            write_raw(self._discovery_writer, cdr.serialize(info))
+            write_raw(self._discovery_writer, cdr.serialize(info, pad_to=4))
 
 
-def write_raw(writer: DataWriter, payload: bytearray) -> None:
-    """Hand serialised CDR straight to Cyclone (padded to 4 bytes like rmw)."""
+def write_raw(writer: DataWriter, payload: bytes) -> None:
+    """Hand serialised CDR straight to Cyclone (padded to 4 bytes, as rmw sends it)."""
     from cyclonedds._clayer import ddspy_write
-    payload.extend(bytes(-len(payload) % 4))
-    ret = ddspy_write(writer._ref, bytes(payload))
+    ret = ddspy_write(writer._ref, payload)
     if ret < 0:
         raise RuntimeError(f'DDS write failed with code {ret}')
 

@@ -35,7 +35,7 @@ class Publisher:
         if type(msg) is not self.msg_type:
             raise TypeError(f"publisher on '{self.topic_name}' takes {type_name_of(self.msg_type)}, "
                             f'got {type_name_of(type(msg))}')
-        write_raw(self._writer, cdr.serialize(msg))
+        write_raw(self._writer, cdr.serialize(msg, pad_to=4))
 
     def get_subscription_count(self) -> int:
         return len(self._writer.get_matched_subscriptions())
