@@ -130,6 +130,27 @@ def run_params(args):
          status_topic=node.resolve_topic_name('/hdp/status'))
 
 
+def run_clock(args):
+    """Publish /clock: sim time starts at 1000 s and runs 10x faster than the wall."""
+    from hdp_msgs_py.msg import Clock, Time
+    node = ros.Node('fake_sim')
+    pub = node.create_publisher(Clock, '/clock', 10)
+    start = time.monotonic()
+    while ros.ok() and time.monotonic() - start < args.timeout:
+        sim_ns = 1000 * 10**9 + int((time.monotonic() - start) * 10 * 1e9)
+        pub.publish(Clock(clock=Time(sec=sim_ns // 10**9, nanosec=sim_ns % 10**9)))
+        time.sleep(0.01)
+
+
+def run_sim_time(args):
+    """With use_sim_time, now() and timers follow /clock."""
+    node = ros.Node('sim_time_node', parameter_overrides=[ros.Parameter('use_sim_time', value=True)])
+    ticks = []
+    node.create_timer(1.0, lambda: ticks.append(node.get_clock().now().nanoseconds / 1e9))
+    spin_until(node, lambda: len(ticks) >= 5, args.timeout)
+    emit(ticks=ticks)
+
+
 def run_wrong_type(args):
     node = ros.Node('wrong_type_node')
     pub = node.create_publisher(String, '/hdp/instruction', 10)

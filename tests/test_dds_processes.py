@@ -135,3 +135,24 @@ def test_sigterm_and_sigint_exit_cleanly(ros_domain):
         out, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err
         assert json.loads(out)['got'] == []
+
+
+def test_use_sim_time_follows_clock(ros_domain):
+    clock = start(ros_domain, 'clock', '--timeout', '30')
+    node = start(ros_domain, 'sim_time', '--timeout', '20')
+    result, _ = finish(node)
+    clock.kill()
+    clock.communicate()
+    ticks = result['ticks']
+    assert len(ticks) == 5
+    assert all(1000 <= t < 2000 for t in ticks)                 # sim time, not the wall clock
+    assert all(0.9 <= b - a <= 1.3 for a, b in zip(ticks, ticks[1:]))   # 1 s timer in sim seconds
+
+
+def test_domains_do_not_cross(ros_domain):
+    other = ros_domain % 199 + 1
+    sub = start(other, 'sub', 'string', '--timeout', '4')
+    pub = start(ros_domain, 'pub', 'string', '--count', '60', '--rate', '10')
+    assert finish(sub)[0]['got'] == []
+    pub.kill()
+    pub.communicate()

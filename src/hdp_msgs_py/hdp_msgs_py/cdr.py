@@ -12,7 +12,6 @@ copy each way instead of a Python loop per byte.
 
 from __future__ import annotations
 
-import array
 import struct
 
 import numpy as np
@@ -22,9 +21,6 @@ from .msg_spec import PRIMITIVES, STRING, FieldSpec, MessageSpec
 HEADER = b'\x00\x01\x00\x00'
 _ORIGIN = len(HEADER)
 _U32 = struct.Struct('<I')
-# array.array typecodes matching rclpy's sequence types (bool sequences are lists)
-_TYPECODES = {'B': 'B', 'b': 'b', 'h': 'h', 'H': 'H', 'i': 'i', 'I': 'I',
-              'q': 'q', 'Q': 'Q', 'f': 'f', 'd': 'd'}
 
 
 class CdrError(ValueError):
@@ -195,7 +191,7 @@ def _decode_field(field: FieldSpec, class_of):
         return count, pos + 4
 
     if field.is_primitive:
-        typecode = _TYPECODES.get(fmt)
+        typecode = None if field.base == 'bool' else fmt
 
         def get_array(mv, pos):
             count, pos = get_count(mv, pos)
@@ -203,13 +199,13 @@ def _decode_field(field: FieldSpec, class_of):
                 pos = _align(pos, size)
             end = _take(mv, pos, count * size)
             raw = mv[pos:end]
-            if field.array == 'fixed':       # rclpy: numpy arrays for fixed sizes
-                return np.frombuffer(raw, dtype='<' + fmt).copy(), end
             if typecode is None:             # bool[]: a list, as in rclpy
                 return [bool(b) for b in raw], end
-            out = array.array(typecode)
-            out.frombytes(raw)
-            return out, end
+            if field.array == 'fixed':       # rclpy: writable numpy arrays for fixed sizes
+                return np.frombuffer(raw, dtype='<' + fmt).copy(), end
+            # Sequences: a read-only view of the received payload, no copy. A
+            # camera frame is then never copied after Cyclone hands it over.
+            return np.frombuffer(raw, dtype='<' + fmt), end
         return get_array
 
     def get_items(mv, pos):

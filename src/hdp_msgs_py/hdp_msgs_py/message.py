@@ -2,8 +2,12 @@
 
 Field values follow rclpy's Python mapping: numbers and strings for scalars,
 ``array.array`` for numeric sequences, numpy arrays for numeric fixed-size
-arrays, lists for strings and nested messages. Any sequence or numpy array is
-accepted on assignment; the type is checked when the message is serialised.
+arrays, lists for strings, bools and nested messages. One difference, for
+speed: a numeric sequence in a *received* message is a read-only numpy view
+of the sample (a 640x480 frame is never copied after DDS delivers it); it
+supports everything reading code does (len, indexing, iteration,
+np.asarray); assign a new sequence to change it. Any sequence or numpy array
+is accepted on assignment; types are checked when the message is serialised.
 """
 
 from __future__ import annotations

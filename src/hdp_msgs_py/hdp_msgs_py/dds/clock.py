@@ -60,6 +60,9 @@ class Clock:
     def __init__(self):
         self._lock = threading.Lock()
         self._sim_ns: int | None = None   # None: sim time off
+        # Bumped when time jumps (sim time switched on or off, /clock going
+        # back): timers restart from the new time, as rcl timers do.
+        self.jumps = 0
 
     @property
     def ros_time_is_active(self) -> bool:
@@ -67,11 +70,15 @@ class Clock:
 
     def set_sim_time(self, active: bool) -> None:
         with self._lock:
+            if active != (self._sim_ns is not None):
+                self.jumps += 1
             self._sim_ns = (self._sim_ns or 0) if active else None
 
     def set_sim_now(self, nanoseconds: int) -> None:
         with self._lock:
             if self._sim_ns is not None:
+                if nanoseconds < self._sim_ns or self._sim_ns == 0:
+                    self.jumps += 1
                 self._sim_ns = nanoseconds
 
     def now(self) -> Time:

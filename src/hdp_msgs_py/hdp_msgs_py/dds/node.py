@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import traceback
 
+from cyclonedds._clayer import ddspy_take
 from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
@@ -59,7 +60,6 @@ class Subscription:
 
     def take(self) -> list:
         """Decoded samples waiting in the reader; malformed ones are logged and dropped."""
-        from cyclonedds._clayer import ddspy_take
         ret = ddspy_take(self._reader._ref, _ANY_SAMPLE, _TAKE_BATCH)
         if isinstance(ret, int):
             self._logger.error(f"DDS take on '{self.topic_name}' failed with code {ret}")
@@ -101,6 +101,7 @@ class Timer:
 
     def reset(self):
         self.is_canceled = False
+        self._epoch = self._clock.jumps
         self._next_ns = self._clock.now().nanoseconds + self.timer_period_ns
 
     def cancel(self):
@@ -110,6 +111,8 @@ class Timer:
         """Nanoseconds until due (<= 0: due now); None when cancelled."""
         if self.is_canceled:
             return None
+        if self._epoch != self._clock.jumps:
+            self.reset()
         return self._next_ns - self._clock.now().nanoseconds
 
     def call(self):
