@@ -101,3 +101,24 @@ def test_ros_discovery_info_decodes_with_rosbags(ros_domain):
     assert entry['namespace'] == '/'
     assert len(entry['readers']) >= 1 and all(len(g) == 32 for g in entry['readers'])
 
+
+
+def test_planner_node_executable_acknowledges_an_instruction(ros_domain):
+    import signal
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
+    node = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                             '-p', 'use_sim_time:=false'], env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    echo = subprocess.Popen([*HDP, 'topic', 'echo', '--once', '--timeout', '20', '/hdp/status',
+                             'std_msgs/msg/String'], env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    time.sleep(2.0)
+    result = hdp(ros_domain, 'topic', 'pub', '--once', '-w', '2', '/hdp/instruction',
+                 'std_msgs/msg/String', "{data: 'open the drawer'}")
+    out, err = echo.communicate(timeout=30)
+    node.send_signal(signal.SIGINT)
+    node.communicate(timeout=10)
+    assert result.returncode == 0, result.stderr
+    assert echo.returncode == 0, err
+    assert "'open the drawer'" in yaml.safe_load(out.split('---')[0])['data']
+    assert node.returncode == 0

@@ -51,7 +51,25 @@ else:
                       init, ok, qos_profile_sensor_data, qos_profile_system_default, shutdown, spin,
                       spin_once, try_shutdown)
 
-__all__ = ['USING_RCLPY', 'Clock', 'Duration', 'DurabilityPolicy', 'ExternalShutdownException',
+
+
+def run(node_class, args=None) -> None:
+    """A node executable's main(): init, construct, spin, shut down cleanly.
+
+    Ctrl-C and SIGTERM end the spin; the node is destroyed either way.
+    """
+    init(args=args)
+    node = node_class()
+    try:
+        spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        try_shutdown()
+
+
+__all__ = ['USING_RCLPY', 'run', 'Clock', 'Duration', 'DurabilityPolicy', 'ExternalShutdownException',
            'HistoryPolicy', 'Node', 'Parameter', 'QoSProfile', 'ReliabilityPolicy',
            'SingleThreadedExecutor', 'Time', 'init', 'ok', 'qos_profile_sensor_data',
            'qos_profile_system_default', 'shutdown', 'spin', 'spin_once', 'try_shutdown']

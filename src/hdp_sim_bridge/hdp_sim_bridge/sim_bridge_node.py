@@ -24,15 +24,7 @@ class SimBridgeNode(ros.Node):
 
 
 def main(args=None):
-    ros.init(args=args)
-    node = SimBridgeNode()
-    try:
-        ros.spin(node)
-    except (KeyboardInterrupt, ros.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        ros.try_shutdown()
+    ros.run(SimBridgeNode, args)
 
 
 if __name__ == '__main__':
