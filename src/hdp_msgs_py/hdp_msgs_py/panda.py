@@ -1,0 +1,32 @@
+"""Franka Panda facts every package shares: joint names, limits, the gripper.
+
+Limits are the real robot's (Franka datasheet), which are slightly tighter
+than pybullet_data's URDF; everything clamps to these.
+"""
+
+import numpy as np
+
+ARM_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
+FINGER_JOINTS = ('panda_finger_joint1', 'panda_finger_joint2')
+
+# rad
+LOWER = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
+UPPER = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
+# rad/s
+VELOCITY_LIMITS = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
+
+# A comfortable home pose, inside every limit.
+HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+
+FINGER_MAX = 0.04           # m per finger: gripper opening = 2 x finger position
+GRIPPER_OPEN_WIDTH = 0.08   # m
+
+
+def joint_names(prefix: str = 'panda') -> tuple[str, ...]:
+    """Arm joint names for a robot prefix ('panda', or 'fr3' for the FR3)."""
+    return tuple(name.replace('panda', prefix, 1) for name in ARM_JOINTS)
+
+
+def within_limits(q, tol: float = 1e-6) -> bool:
+    q = np.asarray(q, dtype=float)
+    return bool(np.all(q >= LOWER - tol) and np.all(q <= UPPER + tol))
