@@ -34,5 +34,9 @@ setup(
         'console_scripts': [
             'sim_bridge_node = hdp_sim_bridge.sim_bridge_node:main',
         ],
+        'hdp.commands': [
+            'collect = hdp_sim_bridge.cli:configure_collect',
+            'render = hdp_sim_bridge.cli:configure_render',
+        ],
     },
 )

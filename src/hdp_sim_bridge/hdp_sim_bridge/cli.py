@@ -1,0 +1,100 @@
+"""`hdp collect` and `hdp render`: the sim bridge's commands."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _tasks(text: str) -> list[str]:
+    from .tasks import TASKS
+    names = list(TASKS) if text == 'all' else [t.strip() for t in text.split(',') if t.strip()]
+    unknown = [n for n in names if n not in TASKS]
+    if unknown:
+        raise SystemExit(f'unknown task(s) {unknown}; tasks: {", ".join(TASKS)} (or "all")')
+    return names
+
+
+def configure_collect(parser) -> None:
+    """Record scripted demonstrations as rosbag2 (MCAP) episodes, with a per-task summary."""
+    parser.add_argument('--tasks', required=True, help='comma-separated task names, or "all"')
+    parser.add_argument('--episodes', type=int, required=True, help='episodes per task')
+    parser.add_argument('--seed-start', type=int, default=0, help='first seed (default 0)')
+    parser.add_argument('--out', type=Path, required=True, help='directory for the episodes')
+    parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1)')
+    parser.add_argument('--width', type=int, default=640, help='camera width (default 640)')
+    parser.add_argument('--height', type=int, default=480, help='camera height (default 480)')
+    parser.add_argument('--json', type=Path, help='also write the summaries here')
+    parser.set_defaults(func=run_collect)
+
+
+def run_collect(args) -> int:
+    from tqdm import tqdm
+
+    from .collect import collect, summary_table
+    if args.episodes < 1 or args.workers < 1:
+        raise SystemExit('--episodes and --workers must be >= 1')
+    tasks = _tasks(args.tasks)
+    start = time.monotonic()
+    summaries = []
+    try:
+        with tqdm(total=len(tasks) * args.episodes, unit='episode') as bar:
+            for summary in collect(tasks, args.episodes, args.seed_start, args.out, args.workers,
+                                   args.width, args.height):
+                summaries.append(summary)
+                bar.set_postfix_str(f'{summary.task} seed {summary.seed}: '
+                                    f'{"ok" if summary.success else "FAILED"}')
+                bar.update()
+    except FileExistsError as err:
+        print(err, file=sys.stderr)
+        return 1
+    minutes = (time.monotonic() - start) / 60
+    print(summary_table(summaries))
+    print(f'\n{len(summaries)} episodes in {minutes:.1f} min ({len(summaries) / minutes:.1f} episodes/min, '
+          f'{args.workers} worker(s)); failed demos are marked success=false and never used for training.')
+    if args.json:
+        args.json.write_text(json.dumps([s.__dict__ for s in summaries], indent=1))
+    return 0
+
+
+def configure_render(parser) -> None:
+    """Render both cameras of a task scene to PNGs (colour and a depth colormap)."""
+    parser.add_argument('--task', required=True)
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--out', type=Path, required=True)
+    parser.add_argument('--width', type=int, default=640)
+    parser.add_argument('--height', type=int, default=480)
+    parser.set_defaults(func=run_render)
+
+
+def run_render(args) -> int:
+    import cv2
+    import numpy as np
+
+    from .cameras import default_cameras
+    from .tasks import make_task
+    from .world import PandaWorld
+    _tasks(args.task)
+    args.out.mkdir(parents=True, exist_ok=True)
+    with PandaWorld() as world:
+        world.reset(args.seed)
+        rng = np.random.default_rng(args.seed)
+        task = make_task(args.task)
+        task.reset(world, rng, int(rng.integers(len(task.variations))))
+        world.step(24)      # let objects settle
+        for name, camera in default_cameras(args.width, args.height).items():
+            rgb, depth = camera.render(world.client)
+            valid = depth > 0
+            scaled = np.zeros(depth.shape, np.uint8)
+            if valid.any():
+                lo, hi = np.percentile(depth[valid], [1, 99])
+                scaled[valid] = np.clip(255 * (depth[valid] - lo) / max(hi - lo, 1), 0, 255).astype(np.uint8)
+            colormap = cv2.applyColorMap(255 - scaled, cv2.COLORMAP_TURBO)
+            colormap[~valid] = 0
+            for suffix, image in (('color', cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)), ('depth', colormap)):
+                path = args.out / f'{args.task}_{args.seed}_{name}_{suffix}.png'
+                cv2.imwrite(str(path), image)
+                print(path)
+    return 0

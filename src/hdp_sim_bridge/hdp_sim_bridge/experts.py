@@ -1,0 +1,224 @@
+"""Scripted experts: reach each task waypoint, come to rest, actuate the gripper.
+
+Like RLBench's demos: a linear path when possible, else OMPL RRT-Connect, and
+hinge-following arcs passed through without stopping. Some approach paths are
+deliberately left unsmoothed, so demonstrations vary in trajectory rank.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from hdp_msgs_py import panda
+
+from . import motion
+from .world import TIME_STEP
+
+SETTLE_VELOCITY = 0.01     # rad/s: "at rest", below the keyframe stopping delta
+MIN_REST_S = 0.3           # rest at a waypoint with nothing else to do there
+GRIPPER_S = 0.5            # time given to the fingers
+
+
+class ExpertFailure(RuntimeError):
+    """No path to a waypoint (planning or IK failed)."""
+
+
+@dataclasses.dataclass
+class ExpertConfig:
+    velocity_scale: float = 0.5        # of the Panda's joint velocity limits
+    unsmoothed_probability: float = 0.3
+    rrt_timeout: float = 5.0
+
+
+def via_path(world, poses, q_start) -> np.ndarray:
+    """Joint path through a chain of poses, each IK seeded by the previous: (N,7)."""
+    path, q = [q_start], q_start
+    for xyz, quat in poses:
+        q = motion.solve_ik(_cid(world), world.robot, xyz, quat, q)
+        if q is None or np.max(np.abs(q - path[-1])) > 0.5:
+            raise ExpertFailure('no continuous IK solution along the arc')
+        path.append(q)
+    return motion.resample_path(np.array(path), max(2, 8 * len(path)))
+
+
+def _cid(world) -> int:
+    return world.client_id
+
+
+def _held_free_body(world) -> int | None:
+    """The grasped body if it moves freely with the hand (a cup), not an articulated link."""
+    body = world.grasped_body()
+    return body if body is not None and world.grasped_link() == -1 else None
+
+
+def plan(world, task, waypoint, rng, config: ExpertConfig, q_goal=None) -> np.ndarray:
+    """A joint path (N,7) to the waypoint; ``q_goal`` pins the arm configuration to end in."""
+    q_start = world.joint_positions()
+    held = _held_free_body(world)
+    obstacles = [world.table] + [b for b in world.task_bodies if b != held]
+    if waypoint.path == 'via':
+        return via_path(world, waypoint.poses, q_start)
+    xyz, quat = waypoint.poses[0]
+    if waypoint.path == 'linear':
+        # Straight moves go into contact (grasps) or carry what is held: only the
+        # table and what is not being handled may stop them.
+        others = [b for b in obstacles if b not in (held, world.grasped_body()) and b not in task.touched]
+        path = motion.linear_path(_cid(world), world.robot, q_start, xyz, quat,
+                                  obstacles=[world.table] + others, attached=held)
+        if path is None:
+            raise ExpertFailure(f'no straight-line path to {np.round(xyz, 3).tolist()}')
+        return path
+    if q_goal is not None:
+        path = motion.linear_path(_cid(world), world.robot, q_start, xyz, quat, obstacles=obstacles,
+                                  attached=held)
+        if path is not None and np.max(np.abs(path[-1] - q_goal)) < 0.1 \
+                and rng.random() >= config.unsmoothed_probability:
+            return path
+        simplify = rng.random() >= config.unsmoothed_probability   # some demos stay sub-optimal
+        path = motion.rrt_connect(_cid(world), world.robot, q_start, q_goal, obstacles,
+                                  timeout=config.rrt_timeout, seed=int(rng.integers(2**31)),
+                                  simplify=simplify, attached=held)
+        if path is None:
+            raise ExpertFailure(f'no collision-free path to {np.round(xyz, 3).tolist()}')
+        return path
+    if rng.random() < config.unsmoothed_probability:    # a sub-optimal (low-rank) demo
+        q_goal = motion.solve_ik(_cid(world), world.robot, xyz, quat, q_start)
+        if q_goal is not None:
+            path = motion.rrt_connect(_cid(world), world.robot, q_start, q_goal, obstacles,
+                                      timeout=config.rrt_timeout, seed=int(rng.integers(2**31)),
+                                      simplify=False, attached=held)
+            if path is not None:
+                return path
+    found = motion.plan_to_pose(_cid(world), world.robot, q_start, xyz, quat, obstacles,
+                                seed=int(rng.integers(2**31)), attached=held)
+    if found is None:
+        raise ExpertFailure(f'no path to {np.round(xyz, 3).tolist()}')
+    return found[0]
+
+
+def follow(world, task, path: np.ndarray, config: ExpertConfig, on_step, on_arrive, hold: float) -> None:
+    """Track a time-parameterised joint path, then wait for the arm to stop (see ``rest``)."""
+    times = motion.time_parameterize(path, velocity_scale=config.velocity_scale)
+    t0 = world.sim_time
+    while world.sim_time - t0 < times[-1]:
+        t = world.sim_time - t0 + TIME_STEP
+        target = np.array([np.interp(t, times, path[:, j]) for j in range(path.shape[1])])
+        world.command_arm(target)
+        _step(world, task, on_step)
+    rest(world, task, path[-1], on_step, on_arrive, hold)
+
+
+def rest(world, task, q_final, on_step, on_arrive, hold: float, timeout: float = 3.0) -> None:
+    """Hold ``q_final`` until the arm is still; ``on_arrive`` fires at the first still
+    step (the keyframe the rule will find), then the arm stays still ``hold`` s more.
+
+    A waypoint followed by a gripper action or ending the demo holds 0 s, so the
+    stop and the gripper change (or the last frame) are one keyframe, not two.
+    """
+    world.command_arm(q_final)
+    start, still_since = world.sim_time, None
+    while world.sim_time - start < timeout:
+        _step(world, task, on_step)
+        if np.max(np.abs(world.joint_velocities())) < SETTLE_VELOCITY:
+            if still_since is None:
+                still_since = world.sim_time
+                on_arrive()
+            if world.sim_time - still_since >= hold:
+                return
+        else:
+            still_since = None
+    on_arrive()      # never quite still (e.g. pushing against a hinge): carry on from here
+
+
+def actuate(world, task, action: str, on_step, on_gripper) -> None:
+    world.command_gripper(action == 'open')
+    on_gripper(action == 'open')
+    start = world.sim_time
+    while world.sim_time - start < GRIPPER_S:
+        _step(world, task, on_step)
+
+
+def _step(world, task, on_step) -> None:
+    world.step()
+    task.on_step(world)
+    on_step()
+
+
+def _ik_chain(world, waypoints, q_first_seed) -> tuple[float, np.ndarray | None]:
+    """IK through every pose in order, each seeded by the last (no collision checks).
+
+    Returns (the smallest distance to a joint limit along the chain, the first
+    waypoint's solution), or (-inf, None) when some pose is out of reach.
+    """
+    q_prev, q = world.joint_positions(), q_first_seed
+    margin, first = np.inf, None
+    for waypoint in waypoints:
+        for xyz, quat in waypoint.poses:
+            q = motion.solve_ik(_cid(world), world.robot, xyz, quat, q)
+            if q is None or (first is not None and np.max(np.abs(q - q_prev)) > 0.5):
+                return -np.inf, None
+            first = q if first is None else first
+            margin = min(margin, float(np.min(np.minimum(q - panda.LOWER, panda.UPPER - q))))
+            q_prev = q
+    return margin, first
+
+
+def choose_waypoints(world, task) -> tuple[list, np.ndarray | None]:
+    """The waypoints and first joint goal that keep the arm farthest from its limits.
+
+    Tries both grasp flips (the wrist turned 180 deg) and IK seeds from the
+    current arm and from HOME turned towards the object, as a person would
+    pick a comfortable way to hold before reaching.
+    """
+    origin, _, _ = task.frame()
+    towards = panda.HOME.copy()
+    towards[0] = np.clip(np.arctan2(origin[1], origin[0]), panda.LOWER[0], panda.UPPER[0])
+    # and a few postures around that one: pybullet's IK finds far-off wrist angles
+    # only from a nearby start
+    jitter = np.random.default_rng(0).normal(0.0, 0.4, (4, 7))
+    seeds = [world.joint_positions(), towards] + list(np.clip(towards + jitter, panda.LOWER, panda.UPPER))
+    best = (-np.inf, task.waypoints(world), None)
+    for flip in (False, True):
+        waypoints = task.waypoints(world, flip)
+        for seed in seeds:
+            margin, first = _ik_chain(world, waypoints, seed)
+            if margin > best[0]:
+                best = (margin, waypoints, first)
+    return best[1], best[2]
+
+
+@dataclasses.dataclass
+class ExpertResult:
+    success: bool
+    reason: str = ''        # why it failed: no path, or the success condition did not hold
+
+
+def run_expert(world, task, rng: np.random.Generator, on_step=lambda: None, on_rest=lambda: None,
+               on_gripper=lambda is_open: None, config: ExpertConfig | None = None) -> ExpertResult:
+    """Execute the task's waypoints, then check the task's success condition.
+
+    ``on_step`` runs after every physics step (recording), ``on_rest`` when
+    the arm comes to rest at a waypoint and at the very end (camera frames at
+    the keyframes), ``on_gripper``
+    with each gripper command (True: open).
+    """
+    config = config or ExpertConfig()
+    waypoints, q_first = choose_waypoints(world, task)
+    for i, waypoint in enumerate(waypoints):
+        try:
+            path = plan(world, task, waypoint, rng, config, q_first if i == 0 else None)
+        except ExpertFailure as err:
+            return ExpertResult(False, f'waypoint {i}: {err}')
+        last = i == len(waypoints) - 1
+        hold = 0.0 if waypoint.gripper or last else MIN_REST_S
+        follow(world, task, path, config, on_step, on_rest, hold)
+        if waypoint.gripper:
+            actuate(world, task, waypoint.gripper, on_step, on_gripper)
+    if waypoints and waypoints[-1].gripper:
+        on_rest()                     # the final frame, after the fingers have moved
+    if task.success(world):
+        return ExpertResult(True)
+    lost = f', grasp lost {world.grasp_lost_count}x' if world.grasp_lost_count else ''
+    return ExpertResult(False, f'success condition not met{lost}')
