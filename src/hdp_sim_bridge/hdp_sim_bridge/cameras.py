@@ -131,7 +131,9 @@ class D415Camera:
 
 # Eye offsets from the workspace centre, m: the whole WORKSPACE box stays in view with a
 # margin even in a square (42 x 42 deg) image, ~1.7 m away as a mounted D415 would be.
-_EYE_OFFSETS = {'front': (1.35, 0.0, 1.1),     # across the table, facing the robot
+# "front" looks over the robot's shoulder, so it sees the faces of the objects that
+# the tasks turn towards the robot (drawer handles, lids, door levers).
+_EYE_OFFSETS = {'front': (-0.7, 1.0, 1.1),    # behind the robot's left shoulder, high
                 'side': (0.0, -1.05, 1.25)}    # from the robot's right, looking down
 
 
