@@ -14,6 +14,10 @@ GRIPPER_TRAJECTORY = '/panda_gripper_controller/joint_trajectory'
 TF_STATIC = '/tf_static'
 CLOCK = '/clock'
 CAMERAS = ('front', 'side')
+# The simulator's episode control (sim_bridge_node only; a real robot has none).
+SIM_RESET = '/hdp/sim/reset'          # std_msgs/String JSON {"task", "seed", "variation"}
+SIM_EPISODE = '/hdp/sim/episode'      # std_msgs/String JSON of the running episode (latched)
+SIM_SUCCESS = '/hdp/sim/success'      # std_msgs/Bool: the task's success condition, 2 Hz
 
 
 def color_image(camera: str) -> str:

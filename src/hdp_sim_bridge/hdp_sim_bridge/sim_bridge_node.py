@@ -1,26 +1,119 @@
-"""sim_bridge_node: announces itself on /hdp/status.
+"""sim_bridge_node: a simulated Panda and two D415 cameras, with the topics of the real ones.
 
-A placeholder in the graph: the PyBullet world is wired in by a later issue.
+It is the graph's clock: it publishes /clock from simulation time and keeps
+its own timers on the wall clock, stepping physics at ``real_time_factor``.
 """
 
-from hdp_msgs_py import ros
-from hdp_msgs_py import topics
-from hdp_msgs_py.msg import String
+import json
+import time
+
+from hdp_msgs_py import ros, topics
+from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
+from hdp_msgs_py.ros import QoSProfile, ReliabilityPolicy
+
+from .bridge import SimBridge, parse_reset
+from .world import TIME_STEP
+
+_MAX_STEPS_PER_TICK = 48              # catch up at most 0.2 s of sim time per tick
 
 
 class SimBridgeNode(ros.Node):
 
     def __init__(self):
         super().__init__('sim_bridge_node')
-        self._status = self.create_publisher(String, topics.STATUS, 10)
-        # One-shot: give subscribers a moment to match, announce, then cancel.
-        self._announce_timer = self.create_timer(0.5, self._announce)
+        self.declare_parameter('task', 'reach_target')
+        self.declare_parameter('seed', 0)
+        self.declare_parameter('variation', -1)                 # -1: drawn from the seed
+        self.declare_parameter('camera_width', 640)
+        self.declare_parameter('camera_height', 480)
+        self.declare_parameter('camera_rate_hz', 5.0)           # of sim time; 0 turns cameras off
+        self.declare_parameter('joint_state_rate_hz', 120.0)    # of sim time
+        self.declare_parameter('real_time_factor', 1.0)         # 0: as fast as possible
+        p = {name: self.get_parameter(name).value for name in (
+            'task', 'seed', 'variation', 'camera_width', 'camera_height', 'camera_rate_hz',
+            'joint_state_rate_hz', 'real_time_factor')}
+        self._rtf = p['real_time_factor']
+        self._joint_every = max(1, round(1.0 / (p['joint_state_rate_hz'] * TIME_STEP)))
+        self._camera_every = round(1.0 / (p['camera_rate_hz'] * TIME_STEP)) if p['camera_rate_hz'] > 0 else 0
 
-    def _announce(self):
-        self._announce_timer.cancel()
-        text = 'sim_bridge_node up'
-        self.get_logger().info(text)
-        self._status.publish(String(data=text))
+        self.bridge = SimBridge(p['camera_width'], p['camera_height'])
+        self._status = self.create_publisher(String, topics.STATUS, 10)
+        self._clock_pub = self.create_publisher(Clock, topics.CLOCK, QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self._joints = self.create_publisher(JointState, topics.JOINT_STATES, topics.COMMAND_QOS)
+        self._tf_static = self.create_publisher(TFMessage, topics.TF_STATIC, topics.LATCHED_QOS)
+        self._episode = self.create_publisher(String, topics.SIM_EPISODE, topics.LATCHED_QOS)
+        self._success = self.create_publisher(Bool, topics.SIM_SUCCESS, 10)
+        self._cameras = {name: (self.create_publisher(Image, topics.color_image(name), topics.SENSOR_QOS),
+                                self.create_publisher(Image, topics.depth_image(name), topics.SENSOR_QOS),
+                                self.create_publisher(CameraInfo, topics.camera_info(name), topics.SENSOR_QOS))
+                         for name in self.bridge.cameras}
+        self.create_subscription(JointTrajectory, topics.ARM_TRAJECTORY, self._on_arm, 10)
+        self.create_subscription(JointTrajectory, topics.GRIPPER_TRAJECTORY, self._on_gripper, 10)
+        self.create_subscription(String, topics.SIM_RESET, self._on_reset, 10)
+
+        self._reset(p['task'], p['seed'], None if p['variation'] < 0 else p['variation'])
+        self._tf_static.publish(self.bridge.tf_static())
+        self.create_timer(0.005, self._tick)
+        self.create_timer(0.5, lambda: self._success.publish(Bool(data=self.bridge.success())))
+
+    def _say(self, text: str, error: bool = False):
+        (self.get_logger().error if error else self.get_logger().info)(text)
+        self._status.publish(String(data=f'sim_bridge_node: {text}'))
+
+    def _reset(self, task, seed, variation):
+        episode = self.bridge.reset(task, seed, variation)
+        self._steps, self._wall_start = 0, time.monotonic()
+        self._episode.publish(String(data=json.dumps(episode)))
+        self._say(f"episode {episode['task']} seed {seed} variation {episode['variation']}: "
+                  f"{episode['instruction']!r}")
+
+    def _on_reset(self, msg):
+        try:
+            request = parse_reset(msg.data)
+        except ValueError as err:
+            self._say(f'rejected reset: {err}', error=True)
+            return
+        self._reset(request['task'], request.get('seed', 0), request.get('variation'))
+
+    def _on_arm(self, msg):
+        try:
+            self.bridge.command_arm(msg)
+        except ValueError as err:
+            self._say(f'rejected arm trajectory: {err}', error=True)
+            return
+        self._say(f'executing an arm trajectory of {len(msg.points)} points, '
+                  f'{self.bridge.trajectory.end_time - self.bridge.sim_time:.2f} s')
+
+    def _on_gripper(self, msg):
+        try:
+            self.bridge.command_gripper(msg)
+        except ValueError as err:
+            self._say(f'rejected gripper command: {err}', error=True)
+
+    def _tick(self):
+        """Step physics up to where the wall clock (times the real-time factor) says."""
+        due = _MAX_STEPS_PER_TICK
+        if self._rtf > 0:
+            due = int((time.monotonic() - self._wall_start) * self._rtf / TIME_STEP) - self._steps
+            if due > _MAX_STEPS_PER_TICK:     # fell behind (rendering is slow): drop the backlog
+                self._wall_start += (due - _MAX_STEPS_PER_TICK) * TIME_STEP / self._rtf
+                due = _MAX_STEPS_PER_TICK
+        for _ in range(max(0, due)):
+            self.bridge.step()
+            self._steps += 1
+            if self._steps % self._joint_every == 0:
+                self._clock_pub.publish(self.bridge.clock())
+                self._joints.publish(self.bridge.joint_state())
+            if self._camera_every and self._steps % self._camera_every == 0:
+                for name, (color, depth, info) in self._cameras.items():
+                    images = self.bridge.camera_messages(name)
+                    for publisher, message in zip((color, depth, info), images):
+                        publisher.publish(message)
+
+    def destroy_node(self):
+        self.bridge.close()
+        super().destroy_node()
 
 
 def main(args=None):

@@ -1,0 +1,117 @@
+"""The simulated robot behind sim_bridge_node, without ROS: testable on its own.
+
+Holds one PandaWorld with a task scene, follows arm trajectories like
+joint_trajectory_controller (trajectory_follower), takes gripper commands, and
+turns the state into the messages a real Panda + two RealSense D415s publish.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from hdp_msgs_py import conversions, panda
+from hdp_msgs_py.msg import Clock, Header, TFMessage
+
+from .cameras import default_cameras
+from .collect import joint_state
+from .tasks import TASKS, make_task
+from .trajectory_follower import accept
+from .world import TIME_STEP, PandaWorld
+
+
+def parse_reset(text: str) -> dict:
+    """A reset request, JSON: {"task": name, "seed": int, "variation": int (optional)}."""
+    try:
+        request = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f'reset request is not JSON ({err.msg}): {text[:80]!r}') from None
+    if not isinstance(request, dict) or set(request) - {'task', 'seed', 'variation'}:
+        raise ValueError('reset request must be {"task": ..., "seed": ..., "variation": ...}')
+    if request.get('task') not in TASKS:
+        raise ValueError(f'unknown task {request.get("task")!r}; tasks: {", ".join(TASKS)}')
+    for key in ('seed', 'variation'):
+        if key in request and (type(request[key]) is not int or request[key] < 0):
+            raise ValueError(f'{key} must be a non-negative integer')
+    return request
+
+
+def gripper_target(msg) -> bool:
+    """Whether a gripper JointTrajectory (finger joints, m per finger) asks to open."""
+    names, positions, _, _ = conversions.parse_joint_trajectory(msg)
+    if sorted(names) != sorted(panda.FINGER_JOINTS):
+        raise ValueError(f'gripper trajectory must name {list(panda.FINGER_JOINTS)}, got {names}')
+    target = positions[-1]
+    if np.any(target < -1e-6) or np.any(target > panda.FINGER_MAX + 1e-6):
+        raise ValueError(f'finger positions must be within [0, {panda.FINGER_MAX}] m, got {target.tolist()}')
+    return bool(np.mean(target) >= panda.FINGER_MAX / 2)
+
+
+class SimBridge:
+    def __init__(self, width: int = 640, height: int = 480):
+        self.world = PandaWorld()
+        self.cameras = default_cameras(width, height)
+        self.task = None
+        self.episode: dict = {}
+        self.trajectory = None
+
+    def reset(self, task_name: str, seed: int, variation: int | None = None) -> dict:
+        """A new episode; returns {task, seed, variation, instruction}."""
+        self.world.reset(seed)
+        rng = np.random.default_rng(seed)
+        task = make_task(task_name)
+        drawn = int(rng.integers(len(task.variations)))
+        variation = drawn if variation is None else variation
+        task.reset(self.world, rng, variation)
+        self.task, self.trajectory = task, None
+        self.episode = {'task': task_name, 'seed': seed, 'variation': variation,
+                        'instruction': task.instruction(rng)}
+        return self.episode
+
+    @property
+    def sim_time(self) -> float:
+        return self.world.sim_time
+
+    def command_arm(self, msg) -> None:
+        """Accept a JointTrajectory (replacing the running one) or raise ValueError; nothing moves on error."""
+        self.trajectory = accept(msg, self.sim_time, self.world.joint_positions())
+
+    def command_gripper(self, msg) -> None:
+        self.world.command_gripper(gripper_target(msg))
+
+    def step(self) -> None:
+        if self.trajectory is not None:
+            self.world.command_arm(self.trajectory.sample(self.sim_time + TIME_STEP))
+        self.world.step()
+        if self.task is not None:
+            self.task.on_step(self.world)
+
+    @property
+    def trajectory_done(self) -> bool:
+        return self.trajectory is None or self.sim_time >= self.trajectory.end_time
+
+    def success(self) -> bool:
+        return bool(self.task is not None and self.task.success(self.world))
+
+    # -- messages ------------------------------------------------------------------------
+    def clock(self) -> Clock:
+        return Clock(clock=conversions.seconds_to_time(self.sim_time))
+
+    def joint_state(self):
+        return joint_state(self.world, self.sim_time)
+
+    def tf_static(self) -> TFMessage:
+        return TFMessage(transforms=[c.transform_stamped() for c in self.cameras.values()])
+
+    def camera_messages(self, name: str):
+        """(colour rgb8 Image, depth 16UC1 Image, CameraInfo) of one camera, now."""
+        camera = self.cameras[name]
+        rgb, depth = camera.render(self.world.client)
+        stamp = conversions.seconds_to_time(self.sim_time)
+        header = Header(stamp=stamp, frame_id=camera.frame_id)
+        return (conversions.numpy_to_image(rgb, 'rgb8', header),
+                conversions.numpy_to_image(depth, '16UC1', header), camera.camera_info(stamp))
+
+    def close(self) -> None:
+        self.world.close()

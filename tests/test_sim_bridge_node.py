@@ -1,0 +1,62 @@
+"""sim_bridge_node as a process: topics of a real Panda + two D415s, JTC-like execution, resets."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hdp_sim_bridge.bridge import gripper_target, parse_reset
+
+
+def test_bridge_node_end_to_end(ros_domain):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
+    node = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                             '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=4.0',
+                             '-p', 'task:=reach_target', '-p', 'seed:=3'],
+                            env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        probe = subprocess.run([sys.executable, str(Path(__file__).with_name('bridge_probe.py'))], env=env,
+                               text=True, capture_output=True, timeout=120)
+    finally:
+        node.send_signal(signal.SIGINT)
+        _, node_err = node.communicate(timeout=20)
+    assert probe.returncode == 0, probe.stderr + node_err
+    facts = json.loads(probe.stdout.strip().splitlines()[-1])
+    assert facts['first_episode']['task'] == 'reach_target' and facts['first_episode']['seed'] == 3
+    assert facts['moved_after_bad'] < 1e-3                       # refused: nothing moved
+    assert facts['error_after_good'] < 0.01                       # executed
+    assert facts['last_episode'] == {**facts['last_episode'], 'task': 'open_drawer', 'seed': 5, 'variation': 2}
+    assert facts['joint_state_hz'] >= 100
+    assert facts['clock_advances']
+    assert facts['images'] == {'/camera/front/color/image_raw': ['rgb8', 64, 48],
+                               '/camera/side/aligned_depth_to_color/image_raw': ['16UC1', 64, 48],
+                               '/camera/front/color/camera_info': ['info', 64, 48]}
+    assert facts['tf'] == ['front_color_optical_frame', 'side_color_optical_frame']
+    status = '\n'.join(facts['status'])
+    assert 'rejected arm trajectory' in status and 'above its limit' in status
+    assert "unknown: ['elbow']" in status
+    assert "rejected reset: unknown task 'make_tea'" in status
+    assert facts['success_reports'] > 0
+    assert node.returncode == 0, node_err
+
+
+def test_reset_requests_are_validated():
+    assert parse_reset('{"task": "open_box", "seed": 4}') == {'task': 'open_box', 'seed': 4}
+    for bad in ('open_box', '{"task": "open_box", "seed": -1}', '{"task": "open_box", "colour": 1}', '[]'):
+        with pytest.raises(ValueError):
+            parse_reset(bad)
+
+
+def test_gripper_commands_are_validated():
+    from hdp_msgs_py import conversions, panda
+    names = list(panda.FINGER_JOINTS)
+    assert gripper_target(conversions.build_joint_trajectory(names, [[0.04, 0.04]], [0.5])) is True
+    assert gripper_target(conversions.build_joint_trajectory(names, [[0.0, 0.0]], [0.5])) is False
+    with pytest.raises(ValueError, match='within'):
+        gripper_target(conversions.build_joint_trajectory(names, [[0.09, 0.09]], [0.5]))
+    with pytest.raises(ValueError, match='must name'):
+        gripper_target(conversions.build_joint_trajectory(['a', 'b'], [[0.0, 0.0]], [0.5]))
