@@ -37,6 +37,7 @@ setup(
         'hdp.commands': [
             'collect = hdp_sim_bridge.cli:configure_collect',
             'render = hdp_sim_bridge.cli:configure_render',
+            'bench.sim = hdp_sim_bridge.cli:configure_bench_sim',
         ],
     },
 )

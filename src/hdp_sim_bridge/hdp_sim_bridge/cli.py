@@ -98,3 +98,44 @@ def run_render(args) -> int:
                 cv2.imwrite(str(path), image)
                 print(path)
     return 0
+
+
+def configure_bench_sim(parser) -> None:
+    """Real-time factor of the simulated Panda, with and without both cameras rendering."""
+    parser.add_argument('--seconds', type=float, default=10.0, help='sim seconds per run (default 10)')
+    parser.add_argument('--width', type=int, default=640)
+    parser.add_argument('--height', type=int, default=480)
+    parser.add_argument('--camera-rate', type=float, default=5.0, help='frames per sim second (default 5)')
+    parser.add_argument('--task', default='open_drawer')
+    parser.add_argument('--json', action='store_true')
+    parser.set_defaults(func=run_bench_sim)
+
+
+def run_bench_sim(args) -> int:
+    from .bridge import SimBridge
+    from .world import TIME_STEP
+    bridge = SimBridge(args.width, args.height)
+    results = {}
+    for label, rate in (('cameras off', 0.0), (f'2 cameras {args.width}x{args.height} @ {args.camera_rate:g} Hz',
+                                                args.camera_rate)):
+        bridge.reset(args.task, 0)
+        every = round(1.0 / (rate * TIME_STEP)) if rate > 0 else 0
+        steps = int(args.seconds / TIME_STEP)
+        start = time.perf_counter()
+        for k in range(1, steps + 1):
+            bridge.step()
+            if k % 2 == 0:
+                bridge.joint_state()
+            if every and k % every == 0:
+                for name in bridge.cameras:
+                    bridge.camera_messages(name)
+        wall = time.perf_counter() - start
+        results[label] = {'sim_s': args.seconds, 'wall_s': round(wall, 3), 'real_time_factor': round(args.seconds / wall, 2)}
+    bridge.close()
+    if args.json:
+        print(json.dumps(results, indent=2))
+    else:
+        print('| run | sim s | wall s | real-time factor |\n|---|---|---|---|')
+        for label, r in results.items():
+            print(f"| {label} | {r['sim_s']:g} | {r['wall_s']} | {r['real_time_factor']} |")
+    return 0
