@@ -16,7 +16,8 @@ from hdp_msgs_py.msg import Clock, Header, TFMessage
 
 from .cameras import default_cameras
 from .collect import joint_state
-from .tasks import TASKS, make_task
+from .experts import reachable_scene
+from .tasks import TASKS
 from .trajectory_follower import accept
 from .world import TIME_STEP, PandaWorld
 
@@ -58,12 +59,7 @@ class SimBridge:
 
     def reset(self, task_name: str, seed: int, variation: int | None = None) -> dict:
         """A new episode; returns {task, seed, variation, instruction}."""
-        self.world.reset(seed)
-        rng = np.random.default_rng(seed)
-        task = make_task(task_name)
-        drawn = int(rng.integers(len(task.variations)))
-        variation = drawn if variation is None else variation
-        task.reset(self.world, rng, variation)
+        task, rng, variation = reachable_scene(self.world, task_name, seed, variation)
         self.task, self.trajectory = task, None
         self.episode = {'task': task_name, 'seed': seed, 'variation': variation,
                         'instruction': task.instruction(rng)}

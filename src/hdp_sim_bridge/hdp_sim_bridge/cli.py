@@ -74,15 +74,12 @@ def run_render(args) -> int:
     import numpy as np
 
     from .cameras import default_cameras
-    from .tasks import make_task
+    from .experts import reachable_scene
     from .world import PandaWorld
     _tasks(args.task)
     args.out.mkdir(parents=True, exist_ok=True)
     with PandaWorld() as world:
-        world.reset(args.seed)
-        rng = np.random.default_rng(args.seed)
-        task = make_task(args.task)
-        task.reset(world, rng, int(rng.integers(len(task.variations))))
+        reachable_scene(world, args.task, args.seed)
         world.step(24)      # let objects settle
         for name, camera in default_cameras(args.width, args.height).items():
             rgb, depth = camera.render(world.client)

@@ -20,7 +20,7 @@ from hdp_msgs_py.episodes import EpisodeWriter
 from hdp_msgs_py.msg import Header, JointState, String, TFMessage
 
 from .cameras import default_cameras
-from .experts import run_expert
+from .experts import reachable_scene, run_expert
 from .tasks import make_task
 from .world import PandaWorld
 
@@ -77,11 +77,7 @@ def record_episode(world: PandaWorld, task_name: str, seed: int, out_dir: Path,
                    width: int = 640, height: int = 480) -> EpisodeSummary:
     """Reset the world to (task, seed), run the expert, write the bag; never raises on task failure."""
     start = time.monotonic()
-    world.reset(seed)
-    rng = np.random.default_rng(seed)
-    task = make_task(task_name)
-    variation = int(rng.integers(len(task.variations)))
-    task.reset(world, rng, variation)
+    task, rng, variation = reachable_scene(world, task_name, seed)
     instruction = task.instruction(rng)
     cameras = default_cameras(width, height)
     path = out_dir / episode_name(task_name, seed)

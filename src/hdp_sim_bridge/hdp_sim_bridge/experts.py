@@ -147,7 +147,7 @@ def _step(world, task, on_step) -> None:
 
 
 def _ik_chain(world, waypoints, q_first_seed) -> tuple[float, np.ndarray | None]:
-    """IK through every pose in order, each seeded by the last (no collision checks).
+    """IK through every pose in order, each seeded by the last; straight lines in full.
 
     Returns (the smallest distance to a joint limit along the chain, the first
     waypoint's solution), or (-inf, None) when some pose is out of reach.
@@ -156,7 +156,11 @@ def _ik_chain(world, waypoints, q_first_seed) -> tuple[float, np.ndarray | None]
     margin, first = np.inf, None
     for waypoint in waypoints:
         for xyz, quat in waypoint.poses:
-            q = motion.solve_ik(_cid(world), world.robot, xyz, quat, q)
+            if waypoint.path == 'linear' and first is not None:   # the whole line, as executed
+                line = motion.linear_path(_cid(world), world.robot, q, xyz, quat, obstacles=[world.table])
+                q = None if line is None else line[-1]
+            else:
+                q = motion.solve_ik(_cid(world), world.robot, xyz, quat, q)
             if q is None or (first is not None and np.max(np.abs(q - q_prev)) > 0.5):
                 return -np.inf, None
             first = q if first is None else first
@@ -179,11 +183,16 @@ def choose_waypoints(world, task) -> tuple[list, np.ndarray | None]:
     # only from a nearby start
     jitter = np.random.default_rng(0).normal(0.0, 0.4, (4, 7))
     seeds = [world.joint_positions(), towards] + list(np.clip(towards + jitter, panda.LOWER, panda.UPPER))
+    valid = motion.collision_checker(_cid(world), world.robot, [world.table] + world.task_bodies)
     best = (-np.inf, task.waypoints(world), None)
     for flip in (False, True):
         waypoints = task.waypoints(world, flip)
         for seed in seeds:
             margin, first = _ik_chain(world, waypoints, seed)
+            if first is not None:
+                with motion.preserved_state(_cid(world), world.robot):
+                    if not valid(first):      # the first goal must be free to plan to
+                        continue
             if margin > best[0]:
                 best = (margin, waypoints, first)
     return best[1], best[2]
@@ -222,3 +231,24 @@ def run_expert(world, task, rng: np.random.Generator, on_step=lambda: None, on_r
         return ExpertResult(True)
     lost = f', grasp lost {world.grasp_lost_count}x' if world.grasp_lost_count else ''
     return ExpertResult(False, f'success condition not met{lost}')
+
+
+def reachable_scene(world, task_name: str, seed: int, variation: int | None = None, attempts: int = 20):
+    """Reset the world to a scene of ``task_name`` that the arm can reach, drawn from ``seed``.
+
+    Layouts are redrawn from the same generator until the expert's waypoints
+    have an IK solution, as RLBench resamples scenes whose demos fail: a task
+    placed out of reach tests nothing. Deterministic: one seed, one scene.
+    Returns (task, rng, variation); the rng continues for the instruction and
+    the expert.
+    """
+    from .tasks import make_task
+    rng = np.random.default_rng(seed)
+    task = make_task(task_name)
+    variation = int(rng.integers(len(task.variations))) if variation is None else variation
+    for _ in range(attempts):
+        world.reset(seed)
+        task.reset(world, rng, variation)
+        if choose_waypoints(world, task)[1] is not None:
+            break
+    return task, rng, variation
