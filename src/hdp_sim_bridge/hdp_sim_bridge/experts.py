@@ -70,32 +70,24 @@ def plan(world, task, waypoint, rng, config: ExpertConfig, q_goal=None) -> np.nd
         if path is None:
             raise ExpertFailure(f'no straight-line path to {np.round(xyz, 3).tolist()}')
         return path
-    if q_goal is not None:
+    if q_goal is None:
+        q_goal = motion.solve_ik(_cid(world), world.robot, xyz, quat, q_start)
+        if q_goal is None:
+            raise ExpertFailure(f'no IK solution for {np.round(xyz, 3).tolist()}')
+    # As RLBench: a straight line when there is one, else RRT-Connect. A share of
+    # demos take the planner's unsimplified path anyway, so trajectory rank varies.
+    sub_optimal = rng.random() < config.unsmoothed_probability
+    if not sub_optimal:
         path = motion.linear_path(_cid(world), world.robot, q_start, xyz, quat, obstacles=obstacles,
                                   attached=held)
-        if path is not None and np.max(np.abs(path[-1] - q_goal)) < 0.1 \
-                and rng.random() >= config.unsmoothed_probability:
+        if path is not None and np.max(np.abs(path[-1] - q_goal)) < 0.1:
             return path
-        simplify = rng.random() >= config.unsmoothed_probability   # some demos stay sub-optimal
-        path = motion.rrt_connect(_cid(world), world.robot, q_start, q_goal, obstacles,
-                                  timeout=config.rrt_timeout, seed=int(rng.integers(2**31)),
-                                  simplify=simplify, attached=held)
-        if path is None:
-            raise ExpertFailure(f'no collision-free path to {np.round(xyz, 3).tolist()}')
-        return path
-    if rng.random() < config.unsmoothed_probability:    # a sub-optimal (low-rank) demo
-        q_goal = motion.solve_ik(_cid(world), world.robot, xyz, quat, q_start)
-        if q_goal is not None:
-            path = motion.rrt_connect(_cid(world), world.robot, q_start, q_goal, obstacles,
-                                      timeout=config.rrt_timeout, seed=int(rng.integers(2**31)),
-                                      simplify=False, attached=held)
-            if path is not None:
-                return path
-    found = motion.plan_to_pose(_cid(world), world.robot, q_start, xyz, quat, obstacles,
-                                seed=int(rng.integers(2**31)), attached=held)
-    if found is None:
-        raise ExpertFailure(f'no path to {np.round(xyz, 3).tolist()}')
-    return found[0]
+    path = motion.rrt_connect(_cid(world), world.robot, q_start, q_goal, obstacles,
+                              timeout=config.rrt_timeout, seed=int(rng.integers(2**31)),
+                              simplify=not sub_optimal, attached=held)
+    if path is None:
+        raise ExpertFailure(f'no collision-free path to {np.round(xyz, 3).tolist()}')
+    return path
 
 
 def follow(world, task, path: np.ndarray, config: ExpertConfig, on_step, on_arrive, hold: float) -> None:
