@@ -21,6 +21,13 @@ MIN_REST_S = 0.3           # rest at a waypoint with nothing else to do there
 GRIPPER_S = 0.5            # time given to the fingers
 
 
+# Starting postures for IK: hand down (HOME), hand level and forward (elbow up,
+# wrist bent back), hand pitched forward-down.
+SEED_POSTURES = (panda.HOME,
+                 np.array([0.0, 0.3, 0.0, -2.0, 0.0, 3.4, 0.785]),
+                 np.array([0.0, 0.1, 0.0, -2.3, 0.0, 2.9, 0.785]))
+
+
 class ExpertFailure(RuntimeError):
     """No path to a waypoint (planning or IK failed)."""
 
@@ -165,16 +172,18 @@ def choose_waypoints(world, task) -> tuple[list, np.ndarray | None]:
     """The waypoints and first joint goal that keep the arm farthest from its limits.
 
     Tries both grasp flips (the wrist turned 180 deg) and IK seeds from the
-    current arm and from HOME turned towards the object, as a person would
-    pick a comfortable way to hold before reaching.
+    current arm and from SEED_POSTURES turned towards the object, as a person
+    would pick a comfortable way to hold before reaching.
     """
     origin, _, _ = task.frame()
-    towards = panda.HOME.copy()
-    towards[0] = np.clip(np.arctan2(origin[1], origin[0]), panda.LOWER[0], panda.UPPER[0])
-    # and a few postures around that one: pybullet's IK finds far-off wrist angles
-    # only from a nearby start
+    yaw = np.clip(np.arctan2(origin[1], origin[0]), panda.LOWER[0], panda.UPPER[0])
+    seeds = [world.joint_positions()]
+    for posture in SEED_POSTURES:        # each turned towards the object
+        seeds.append(np.concatenate([[yaw], posture[1:]]))
+    # and a few around the first: pybullet's IK finds far-off wrist angles only
+    # from a nearby start
     jitter = np.random.default_rng(0).normal(0.0, 0.4, (4, 7))
-    seeds = [world.joint_positions(), towards] + list(np.clip(towards + jitter, panda.LOWER, panda.UPPER))
+    seeds += list(np.clip(seeds[1] + jitter, panda.LOWER, panda.UPPER))
     valid = motion.collision_checker(_cid(world), world.robot, [world.table] + world.task_bodies)
     best = (-np.inf, task.waypoints(world), None)
     for flip in (False, True):
