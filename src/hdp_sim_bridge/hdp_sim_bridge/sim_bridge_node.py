@@ -26,7 +26,7 @@ class SimBridgeNode(ros.Node):
         self.declare_parameter('variation', -1)                 # -1: drawn from the seed
         self.declare_parameter('camera_width', 640)
         self.declare_parameter('camera_height', 480)
-        self.declare_parameter('camera_rate_hz', 5.0)           # of sim time; 0 turns cameras off
+        self.declare_parameter('camera_rate_hz', 2.0)           # of sim time; 0 turns cameras off
         self.declare_parameter('joint_state_rate_hz', 120.0)    # of sim time
         self.declare_parameter('real_time_factor', 1.0)         # 0: as fast as possible
         p = {name: self.get_parameter(name).value for name in (
