@@ -234,7 +234,7 @@ def run_expert(world, task, rng: np.random.Generator, on_step=lambda: None, on_r
     return ExpertResult(False, f'success condition not met{lost}')
 
 
-def reachable_scene(world, task_name: str, seed: int, variation: int | None = None, attempts: int = 20):
+def reachable_scene(world, task_name: str, seed: int, variation: int | None = None, attempts: int = 40):
     """Reset the world to a scene of ``task_name`` that the arm can reach, drawn from ``seed``.
 
     Layouts are redrawn from the same generator until the expert's waypoints

@@ -93,7 +93,7 @@ def urdf_file(text: str) -> str:
 DRAWER_NAMES = ('bottom', 'middle', 'top')
 
 
-def cabinet(width=0.34, depth=0.30, drawer_height=0.09, legs=0.08) -> str:
+def cabinet(width=0.34, depth=0.30, drawer_height=0.08, legs=0.08) -> str:
     """A chest of three drawers on legs; joints `drawer_<bottom|middle|top>` slide out along +x.
 
     The legs lift the bottom handle clear of the table for the Panda's 20 cm wide hand.
