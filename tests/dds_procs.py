@@ -72,7 +72,7 @@ def spin_until(node, done, timeout: float) -> None:
         while ros.ok() and time.monotonic() < end and not done():
             ros.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ros.ExternalShutdownException):
-        pass
+        return      # shut down from outside: the caller reports what it saw
 
 
 def emit(**facts):

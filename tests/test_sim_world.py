@@ -232,13 +232,19 @@ def spawn_slider(world) -> int:
     return world.add_task_body(slider)
 
 
-def test_grasp_welds_the_touched_link(world):
+def grasp_slider(world):
+    """Spawn the slider, grasp its handle from above; returns (slider id, handle position)."""
     slider = spawn_slider(world)
     handle = np.array(world.client.getLinkState(slider, 0)[4])
     move_to(world, handle + (0, 0, 0.15))
     move_to(world, handle)
     world.command_gripper(open=False)
     world.step(120)
+    return slider, handle
+
+
+def test_grasp_welds_the_touched_link(world):
+    slider, handle = grasp_slider(world)
     assert (world.grasped_body(), world.grasped_link()) == (slider, 0)
 
     move_to(world, handle - (0.1, 0, 0))                     # pull the slider 10 cm
@@ -247,12 +253,7 @@ def test_grasp_welds_the_touched_link(world):
 
 
 def test_grasp_survives_small_fights_and_breaks_on_large_ones(world):
-    slider = spawn_slider(world)
-    handle = np.array(world.client.getLinkState(slider, 0)[4])
-    move_to(world, handle + (0, 0, 0.15))
-    move_to(world, handle)
-    world.command_gripper(open=False)
-    world.step(120)
+    slider, handle = grasp_slider(world)
     hand = world.ee_pose()[0]
     # The rail holds the handle; the compliant arm pushes it like a spring.
     world.command_arm(ik(world, hand - (0, 0, 0.01)))
