@@ -31,17 +31,15 @@ import pybullet_data
 from pybullet_utils.bullet_client import BulletClient
 
 from hdp_msgs_py import panda
+from hdp_msgs_py.workspace import TABLE_TOP_Z, WORKSPACE  # noqa: F401  (re-exported)
 
 TIME_STEP = 1.0 / 240.0           # s
 GRAVITY = -9.81                   # m/s^2
 
-TABLE_TOP_Z = 0.75                # m, height of the table's top surface
 TABLE_CENTER_XY = (0.35, 0.0)     # m
 # m; a solid block from the floor up (no legs to see between): x -0.2..0.9, y -0.6..0.6.
 TABLE_HALF_EXTENTS = (0.55, 0.6, TABLE_TOP_Z / 2)
 ROBOT_BASE = (0.0, 0.0, TABLE_TOP_Z)      # m, the Panda's base frame (link 0), facing +x
-# (2, 3) m: [low, high] corners of the box the tasks use, on the table in front of the robot.
-WORKSPACE = np.array([[0.2, -0.4, TABLE_TOP_Z], [0.8, 0.4, TABLE_TOP_Z + 0.6]])
 
 ARM_JOINT_IDS = tuple(range(7))
 FINGER_JOINT_IDS = (9, 10)
