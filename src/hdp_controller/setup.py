@@ -18,6 +18,7 @@ setup(
         'tqdm',
         'torch',
         'pytorch-kinematics',
+        'diffusers',
         'ompl',
     ],
     extras_require={'test': ['pytest']},
@@ -29,6 +30,10 @@ setup(
     entry_points={
         'console_scripts': [
             'controller_node = hdp_controller.controller_node:main',
+        ],
+        'hdp.commands': [
+            'eval.low-level = hdp_controller.eval_cli:configure',
+            'train.low-level = hdp_controller.cli:configure_train',
         ],
     },
 )

@@ -1,0 +1,74 @@
+"""`hdp eval low-level`: low-level methods on oracle next-best poses (the paper's Table 2)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+METHODS = ('rkd', 'planner', 'pose_ik', 'joint')
+
+
+def configure(parser) -> None:
+    """Low-level methods on oracle next-best poses (Table 2): success % / IK-error % per task."""
+    parser.add_argument('--methods', default='planner',
+                        help=f'comma-separated, of {", ".join(METHODS)} (default planner)')
+    parser.add_argument('--tasks', default='all', help='comma-separated task names, or "all" (default)')
+    parser.add_argument('--episodes', type=int, default=25, help='episodes per task (default 25)')
+    parser.add_argument('--seed-start', type=int, required=True,
+                        help='first seed; must not overlap the seeds a checkpoint was trained on')
+    parser.add_argument('--checkpoint', help='checkpoint of the learned methods (rkd, pose_ik, joint)')
+    parser.add_argument('--sampler', choices=('ddpm', 'ddim'), default='ddim',
+                        help='diffusion sampler of the learned methods (default ddim)')
+    parser.add_argument('--json', type=Path, help='also write every episode record here')
+    parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1)')
+    parser.set_defaults(func=run)
+
+
+def _names(text: str, known, what: str) -> list[str]:
+    names = list(known) if text == 'all' else [n.strip() for n in text.split(',') if n.strip()]
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise SystemExit(f'unknown {what} {unknown or text!r}; {what}s: {", ".join(known)}')
+    return names
+
+
+def make_policy(method: str, checkpoint: str | None, sampler: str):
+    """The planner here; the learned methods from their checkpoint (needs hdp_controller.policy)."""
+    if method == 'planner':
+        from .baselines import PlannerPolicy
+        return PlannerPolicy()
+    try:
+        from .policy import load_policy
+    except ImportError as err:
+        raise SystemExit(f'{method} needs hdp_controller.policy.load_policy, which cannot be imported: {err}')
+    return load_policy(method, checkpoint, sampler)
+
+
+def run(args) -> int:
+    from hdp_sim_bridge.tasks import TASKS
+
+    from .evaluation import evaluate, markdown_table
+    if args.episodes < 1 or args.workers < 1:
+        raise SystemExit('--episodes and --workers must be >= 1')
+    if args.seed_start < 0:
+        raise SystemExit(f'--seed-start must be >= 0, got {args.seed_start}')
+    tasks = _names(args.tasks, TASKS, 'task')
+    methods = {name: make_policy(name, args.checkpoint, args.sampler)
+               for name in _names(args.methods, METHODS, 'method')}
+    start = time.monotonic()
+    try:
+        results = evaluate(methods, tasks, args.episodes, args.seed_start, args.workers)
+    except ValueError as err:
+        print(err, file=sys.stderr)
+        return 1
+    print(markdown_table(results))
+    skipped = {task: [s['seed'] for s in seeds] for task, seeds in results['skipped'].items() if seeds}
+    if skipped:
+        print(f'\nSkipped (the expert failed, so there are no oracle NBPs): {skipped}')
+    print(f'\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {args.workers} worker(s), '
+          f'{(time.monotonic() - start) / 60:.1f} min')
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return 0

@@ -1,0 +1,208 @@
+"""Low-level evaluation (Table 2 setting): observations, the planner and pose+IK baselines,
+oracle NBPs, episodes, the results table and `hdp eval low-level`."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hdp_controller.baselines import PlannerPolicy, PoseIKPolicy
+from hdp_controller.evaluation import evaluate, markdown_table, oracle_episode, run_episode
+from hdp_controller.low_level import HORIZON, PlanResult
+from hdp_controller.observation import front_camera, front_points, points_from_messages, segment_request
+from hdp_msgs_py import conversions, workspace
+from hdp_msgs_py.episodes import read_episode
+from hdp_sim_bridge import motion
+from hdp_sim_bridge.collect import record_episode
+from hdp_sim_bridge.experts import reachable_scene
+from hdp_sim_bridge.world import PandaWorld
+
+HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+SEED = 5000       # a seed the planner solves for reach_target and open_drawer
+
+
+@pytest.fixture(scope='module')
+def world():
+    with PandaWorld() as w:
+        yield w
+
+
+@pytest.fixture(scope='module')
+def oracles(world):
+    return {task: oracle_episode(task, SEED, world) for task in ('reach_target', 'open_drawer')}
+
+
+def straight_line(request) -> np.ndarray:
+    """A pose sampler: HORIZON poses from the start to the goal position at the goal's orientation."""
+    s = np.linspace(0.0, 1.0, HORIZON)[:, None]
+    xyz = (1 - s) * request.start_pose[:3] + s * request.goal_pose[:3]
+    return np.hstack([xyz, np.repeat(request.goal_pose[None, 3:], HORIZON, axis=0)])
+
+
+class AlwaysIKError:
+    name = 'always_ik_error'
+
+    def plan(self, request, scene=None):
+        return PlanResult(None, failure='ik_error', ik_error=True)
+
+
+# --- observation -------------------------------------------------------------------
+
+def test_front_points_are_a_fixed_size_workspace_cloud_and_match_the_message_path(world):
+    reachable_scene(world, 'open_drawer', SEED)
+    camera = front_camera()
+    assert (camera.intrinsics.width, camera.intrinsics.height) == (128, 96)
+    points = front_points(world, camera, 512, np.random.default_rng(1))
+    assert points.shape == (512, 3) and points.dtype == np.float32
+    assert workspace.in_workspace(points).all()
+    _, depth = camera.render(world.client)
+    from_messages = points_from_messages(conversions.numpy_to_image(depth, '16UC1'), camera.camera_info(),
+                                         camera.transform_stamped(), 512, np.random.default_rng(1))
+    np.testing.assert_array_equal(points, from_messages)
+
+
+def test_segment_request_reads_the_world_state(world):
+    reachable_scene(world, 'reach_target', SEED)
+    world.command_gripper(False)
+    goal = np.array([0.5, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+    request = segment_request(world, goal, True, np.zeros((4, 3)))
+    np.testing.assert_allclose(request.start_pose[:3], world.ee_pose()[0])
+    np.testing.assert_allclose(request.q, world.joint_positions())
+    assert request.gripper_open is False and request.goal_gripper_open is True
+    assert request.points.dtype == np.float32 and request.goal_pose.shape == (7,)
+
+
+# --- baselines ---------------------------------------------------------------------------
+
+def _request_to(world, xyz, quat):
+    return segment_request(world, np.concatenate([xyz, quat]), True, np.zeros((1, 3)))
+
+
+def test_pose_ik_follows_a_reachable_line_and_flags_an_unreachable_pose(world):
+    reachable_scene(world, 'reach_target', SEED)
+    xyz, quat = world.ee_pose()
+    request = _request_to(world, xyz + [0.1, 0.05, -0.05], quat)
+    plan = PoseIKPolicy(straight_line).plan(request)          # the standalone scene
+    assert plan.ok and plan.joints.shape == (HORIZON + 1, 7) and plan.poses.shape == (HORIZON, 7)
+    np.testing.assert_allclose(plan.joints[0], request.q)
+    end, _ = motion.ee_pose(world.client_id, world.robot, plan.joints[-1])
+    np.testing.assert_allclose(end, request.goal_pose[:3], atol=2e-3)
+
+    far = PoseIKPolicy(lambda r: np.tile(np.r_[2.0, 0.0, 1.0, quat], (HORIZON, 1))).plan(request)
+    assert not far.ok and far.failure == 'ik_error' and far.ik_error and far.poses is not None
+
+
+def test_planner_plans_in_free_space_and_reports_no_path(world):
+    reachable_scene(world, 'reach_target', SEED)
+    xyz, quat = world.ee_pose()
+    plan = PlannerPolicy().plan(_request_to(world, xyz + [0.1, 0.0, 0.0], quat))
+    assert plan.ok and plan.extras['kind'] == 'linear'
+    end, _ = motion.ee_pose(world.client_id, world.robot, plan.joints[-1])
+    np.testing.assert_allclose(end, xyz + [0.1, 0.0, 0.0], atol=2e-3)
+    here = PlannerPolicy().plan(_request_to(world, xyz, quat))       # e.g. a repeated keyframe
+    assert here.ok and here.extras['kind'] == 'none' and here.joints.shape == (1, 7)
+    lost = PlannerPolicy().plan(_request_to(world, [2.0, 0.0, 1.0], quat))
+    assert not lost.ok and lost.failure == 'no_path' and not lost.ik_error
+
+
+# --- oracle and episodes -----------------------------------------------------------------
+
+def test_oracle_of_reach_target_ends_where_the_expert_ended(world):
+    oracle = oracle_episode('reach_target', SEED, world)
+    assert oracle.expert_success and len(oracle.nbps) >= 1
+    pose, gripper_open = oracle.nbps[-1]
+    xyz, quat = world.ee_pose()                   # the world is where the expert left it
+    np.testing.assert_allclose(pose[:3], xyz, atol=1e-3)
+    assert abs(abs(np.dot(pose[3:], quat)) - 1) < 1e-6 and gripper_open
+
+
+def test_oracle_nbps_are_the_keyframes_of_the_recorded_demo(world, tmp_path):
+    summary = record_episode(world, 'open_drawer', 7, tmp_path, width=32, height=24)
+    episode = read_episode(summary.path)
+    keyframes = episode.keyframes()
+    oracle = oracle_episode('open_drawer', 7, world)
+    assert len(oracle.nbps) == len(keyframes) >= 3
+    for (pose, gripper_open), k in zip(oracle.nbps, keyframes):
+        xyz, _ = motion.ee_pose(world.client_id, world.robot, episode.joint_states.position[k])
+        np.testing.assert_allclose(pose[:3], xyz, atol=1e-6)
+        assert gripper_open == bool(episode.joint_states.gripper_open[k])
+
+
+@pytest.mark.parametrize('task', ['reach_target', 'open_drawer'])
+def test_planner_solves_oracle_episodes(world, oracles, task):
+    record = run_episode(PlannerPolicy(), oracles[task], world=world)
+    assert record.success and record.failure is None and not record.ik_error
+    assert 1 <= len(record.plan_times) <= len(oracles[task].nbps)
+    assert len(record.joint_paths) == len(record.plan_times)
+
+
+def test_pose_ik_on_a_straight_line_reaches_the_target(world, oracles):
+    record = run_episode(PoseIKPolicy(straight_line), oracles['reach_target'], world=world)
+    assert record.success and len(record.joint_paths[0]) == HORIZON + 2    # current joints first
+
+
+def test_always_failing_ik_gives_zero_success_and_full_ik_error():
+    results = evaluate({'always_ik_error': AlwaysIKError()}, ['reach_target'], 2, SEED, progress=False)
+    assert markdown_table(results).splitlines()[-1] == '| always_ik_error | 0% / 100% | 0% / 100% |'
+    records = results['methods']['always_ik_error']['reach_target']['records']
+    assert [r['failure'] for r in records] == ['ik_error', 'ik_error']
+
+
+def test_overlapping_training_seeds_raise():
+    planner = PlannerPolicy()
+    planner.training_seeds = {'reach_target': [5001, 5002, 7]}
+    with pytest.raises(ValueError, match='reach_target seeds 5001-5002'):
+        evaluate({'planner': planner}, ['reach_target'], 3, 5000, progress=False)
+    with pytest.raises(ValueError, match='unknown task'):
+        evaluate({'planner': PlannerPolicy()}, ['fly'], 1, 0, progress=False)
+    with pytest.raises(ValueError, match='episodes >= 1'):
+        evaluate({'planner': PlannerPolicy()}, ['reach_target'], 0, 0, progress=False)
+
+
+def test_workers_give_the_serial_results():
+    def outcome(workers):
+        results = evaluate({'planner': PlannerPolicy()}, ['reach_target'], 2, SEED, workers, progress=False)
+        return [(r['seed'], r['success'], r['failure'], r['joint_paths'])
+                for r in results['methods']['planner']['reach_target']['records']]
+    assert outcome(2) == outcome(1)
+
+
+def test_markdown_table_layout():
+    def cell(success, ik, n=4):
+        return {'episodes': n, 'success_rate': success, 'ik_error_rate': ik}
+    results = {'tasks': ['a', 'b', 'c'],
+               'methods': {'rkd': {'a': cell(1.0, 0.0), 'b': cell(0.5, 0.25), 'c': cell(None, None, 0)},
+                           'pose_ik': {'a': cell(0.25, 0.75), 'b': cell(0.0, 1.0), 'c': cell(None, None, 0)}}}
+    assert markdown_table(results) == '\n'.join([
+        '| method | a | b | c | overall |',
+        '|---|---|---|---|---|',
+        '| rkd | 100% / 0% | 50% / 25% | n/a | 75% / 12% |',
+        '| pose_ik | 25% / 75% | 0% / 100% | n/a | 12% / 88% |'])
+
+
+# --- command line ----------------------------------------------------------------------------
+
+def test_cli_help_and_a_planner_run():
+    out = subprocess.run([*HDP, 'eval', 'low-level', '--help'], text=True, capture_output=True, check=True).stdout
+    assert '--methods' in out and '--seed-start' in out and '--workers' in out
+    result = subprocess.run([*HDP, 'eval', 'low-level', '--methods', 'planner', '--tasks', 'reach_target',
+                             '--episodes', '1', '--seed-start', str(SEED)],
+                            text=True, capture_output=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert '| method | reach_target | overall |' in result.stdout
+    assert '| planner | 100% / 0% | 100% / 0% |' in result.stdout
+
+
+@pytest.mark.parametrize('args, message', [
+    (['--tasks', 'fly'], 'unknown task'),
+    (['--methods', 'magic'], 'unknown method'),
+    (['--episodes', '0'], '--episodes and --workers must be >= 1'),
+    (['--seed-start', '-3'], '--seed-start must be >= 0'),
+])
+def test_cli_refuses_bad_arguments(args, message):
+    base = {'--tasks': 'reach_target', '--methods': 'planner', '--episodes': '1', '--seed-start': '0'}
+    base.update(dict(zip(args[::2], args[1::2])))
+    result = subprocess.run([*HDP, 'eval', 'low-level', *[x for kv in base.items() for x in kv]],
+                            text=True, capture_output=True, timeout=60)
+    assert result.returncode != 0 and message in result.stderr
