@@ -1,0 +1,113 @@
+"""RK-Diffuser and its learned ablations as LowLevelPolicy objects.
+
+  rkd      sample both diffusers, refine the joints onto the poses (the paper's method)
+  joint    the joint diffuser alone: no distillation at inference, no refinement
+  pose_ik  the pose diffuser, then IK per waypoint (baselines.PoseIKPolicy)
+
+All three come from one checkpoint, so they see the same conditions.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import checkpoint
+from .baselines import PlannerPolicy, PoseIKPolicy
+from .low_level import PlanResult, Scene, SegmentRequest
+from .refine import goal_error, refine
+from .rk_diffuser import RKDiffuser, as_batch
+
+METHODS = ('rkd', 'planner', 'pose_ik', 'joint')
+DEFAULT_CHECKPOINT_NAME = 'rk_diffuser.pt'
+# The fast sampler: DDIM over this many of the 100 training steps.
+FAST_STEPS = 10
+
+
+def default_checkpoint() -> Path:
+    """$HDP_MODELS_DIR/rk_diffuser.pt, else the repository's models/rk_diffuser.pt."""
+    models = Path(os.environ.get('HDP_MODELS_DIR') or Path(__file__).resolve().parents[3] / 'models')
+    return models / DEFAULT_CHECKPOINT_NAME
+
+
+def conditions(request: SegmentRequest) -> dict:
+    """A SegmentRequest -> a batch of one, with quaternion signs as in training:
+    the start's w >= 0 and the goal on the start's side (rank 1, as the paper infers)."""
+    start, goal = np.array(request.start_pose, dtype=float), np.array(request.goal_pose, dtype=float)
+    start[3:] /= np.linalg.norm(start[3:])
+    goal[3:] /= np.linalg.norm(goal[3:])
+    if start[6] < 0:
+        start[3:] *= -1
+    if np.dot(start[3:], goal[3:]) < 0:
+        goal[3:] *= -1
+    return as_batch(dict(q=request.q, qd=request.qd, gripper=[request.gripper_width, float(request.gripper_open)],
+                         start_pose=start, goal_pose=goal, rank=[1.0], points=request.points))
+
+
+class _Sampling:
+    """Shared by the learned policies: the model, the sampler and a seeded generator."""
+
+    def __init__(self, model: RKDiffuser, sampler: str = 'ddpm', steps: int | None = None, seed: int = 0,
+                 training_seeds: dict | None = None):
+        self.model, self.sampler, self.steps = model, sampler, steps
+        self.generator = torch.Generator().manual_seed(seed)
+        self.training_seeds = training_seeds
+
+    def _sample(self, request: SegmentRequest, which) -> dict:
+        return self.model.sample(conditions(request), self.sampler, self.steps, generator=self.generator, which=which)
+
+
+class RKDPolicy(_Sampling):
+    name = 'rkd'
+
+    def __init__(self, *args, refine_steps: int = 100, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.refine_steps = refine_steps
+
+    def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
+        started = time.perf_counter()
+        out = self._sample(request, ('pose', 'joint'))
+        sampled = time.perf_counter()
+        joints = refine(out['joints'], out['poses'], steps=self.refine_steps)
+        translation, rotation = goal_error(joints, out['poses'][:, -1])
+        return PlanResult(joints[0].numpy(), poses=out['poses'][0].numpy(), extras={
+            'unrefined_joints': out['joints'][0].numpy(), 'sample_s': sampled - started,
+            'refine_s': time.perf_counter() - sampled, 'goal_error_m': float(translation[0]),
+            'goal_error_deg': float(np.degrees(rotation[0]))})
+
+
+class JointDiffusionPolicy(_Sampling):
+    name = 'joint'
+
+    def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
+        joints = self._sample(request, ('joint',))['joints']
+        translation, rotation = goal_error(joints, torch.as_tensor(conditions(request)['goal_pose']))
+        return PlanResult(joints[0].numpy(), extras={'goal_error_m': float(translation[0]),
+                                                     'goal_error_deg': float(np.degrees(rotation[0]))})
+
+
+def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps: int | None = None,
+                seed: int = 0):
+    """A LowLevelPolicy by name; learned ones from ``checkpoint_path`` (default: the released one).
+
+    sampler 'ddpm' runs all 100 steps; 'ddim' defaults to FAST_STEPS.
+    """
+    if method not in METHODS:
+        raise ValueError(f'unknown low-level method {method!r}; choose from {", ".join(METHODS)}')
+    if method == 'planner':
+        return PlannerPolicy()
+    model, payload = checkpoint.load_model(checkpoint_path or default_checkpoint())
+    steps = steps or (FAST_STEPS if sampler == 'ddim' else None)
+    common = dict(sampler=sampler, steps=steps, seed=seed, training_seeds=payload.get('training_seeds'))
+    if method == 'rkd':
+        return RKDPolicy(model, **common)
+    if method == 'joint':
+        return JointDiffusionPolicy(model, **common)
+    sampling = _Sampling(model, **common)
+    policy = PoseIKPolicy(lambda request: sampling._sample(request, ('pose',))['poses'][0].numpy())
+    policy.training_seeds = sampling.training_seeds
+    return policy

@@ -1,0 +1,183 @@
+"""RK-Diffuser: a pose diffuser and a joint diffuser sharing one set of conditions.
+
+Conditions C = {start pose, goal pose (the NBP), low-dim state (joint
+positions and velocities, gripper width and open state), front-camera
+points, trajectory rank}. The pose diffuser generates the (T, 7) EE pose
+trajectory with start and goal inpainted; the joint diffuser generates the
+(T, 7) joint trajectory with the start joints inpainted; one encoder embeds
+the conditions for both (the paper gives them the same C). Training distils
+the pose diffuser's accuracy into the joint diffuser through differentiable
+kinematics:  L = b1 L_pose + b2 L_joint + b3 L_joint->pose,  the last term
+comparing FK(predicted joints) with the demonstrated pose trajectory in
+translation AND rotation (the official code drops rotation).
+
+Classifier-free guidance: during training the scene context (points and
+rank) is replaced by learned null embeddings with probability
+``cond_dropout``; sampling extrapolates from the null-context prediction
+towards the conditioned one with weight ``guidance``. Start, goal and
+state are never dropped: without them the trajectory is unconstrained.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from torch import nn
+
+from hdp_msgs_py import panda
+from hdp_msgs_py.workspace import WORKSPACE
+
+from .diffusion import TrajectoryDiffusion
+from .kinematics import forward_kinematics, quat_to_matrix
+from .low_level import HORIZON
+from .pointnet2 import PointNet2Encoder
+from .unet import TemporalUnet
+
+_CENTRE = torch.tensor(WORKSPACE.mean(axis=0), dtype=torch.float32)
+_HALF = torch.tensor((WORKSPACE[1] - WORKSPACE[0]) / 2, dtype=torch.float32)
+_LOWER = torch.tensor(panda.LOWER, dtype=torch.float32)
+_UPPER = torch.tensor(panda.UPPER, dtype=torch.float32)
+_VELOCITY = torch.tensor(panda.VELOCITY_LIMITS, dtype=torch.float32)
+
+
+@dataclasses.dataclass
+class RKDConfig:
+    unet_dim: int = 32
+    dim_mults: tuple = (1, 2, 4)
+    point_features: int = 128
+    point_width: int = 32
+    n_points: int = 1024
+    diffusion_steps: int = 100
+    cond_dropout: float = 0.1
+    guidance: float = 1.2
+    loss_weights: tuple = (1.0, 1.0, 1.0)      # b1 pose, b2 joint, b3 joint->pose
+
+    @classmethod
+    def from_dict(cls, values: dict) -> RKDConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f'unknown RK-Diffuser config keys {sorted(unknown)}; known: {sorted(known)}')
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        return cls(**values)
+
+
+# --- normalisation: everything the networks see is about [-1, 1] ------------------------
+
+def normalize_positions(xyz: torch.Tensor) -> torch.Tensor:
+    return (xyz - _CENTRE.to(xyz)) / _HALF.to(xyz)
+
+
+def unnormalize_positions(xyz: torch.Tensor) -> torch.Tensor:
+    return xyz * _HALF.to(xyz) + _CENTRE.to(xyz)
+
+
+def normalize_poses(pose: torch.Tensor) -> torch.Tensor:
+    return torch.cat([normalize_positions(pose[..., :3]), pose[..., 3:]], dim=-1)
+
+
+def unnormalize_poses(pose: torch.Tensor) -> torch.Tensor:
+    quat = nn.functional.normalize(pose[..., 3:], dim=-1)
+    return torch.cat([unnormalize_positions(pose[..., :3]), quat], dim=-1)
+
+
+def normalize_joints(q: torch.Tensor) -> torch.Tensor:
+    return 2 * (q - _LOWER.to(q)) / (_UPPER - _LOWER).to(q) - 1
+
+
+def unnormalize_joints(q: torch.Tensor) -> torch.Tensor:
+    return (q + 1) / 2 * (_UPPER - _LOWER).to(q) + _LOWER.to(q)
+
+
+def mlp(c_in: int, c_out: int) -> nn.Sequential:
+    """The paper's condition MLP: two hidden layers of 128 and 512, GELU."""
+    return nn.Sequential(nn.Linear(c_in, 128), nn.GELU(), nn.Linear(128, 512), nn.GELU(), nn.Linear(512, c_out))
+
+
+class ConditionEncoder(nn.Module):
+    """Batch of conditions -> (B, out_dim) vector; ``drop`` (B,) bool nulls the scene context."""
+
+    STATE_DIM = 7 + 7 + 7 + 7 + 2     # start pose, goal pose, q, qd, gripper (width, open)
+
+    def __init__(self, config: RKDConfig):
+        super().__init__()
+        self.state = mlp(self.STATE_DIM, 128)
+        self.rank = mlp(1, 32)
+        self.points = PointNet2Encoder(config.point_features, config.point_width)
+        self.null_rank = nn.Parameter(torch.zeros(32))
+        self.null_points = nn.Parameter(torch.zeros(config.point_features))
+        self.out_dim = 128 + 32 + config.point_features
+
+    def forward(self, batch: dict, drop: torch.Tensor) -> torch.Tensor:
+        state = torch.cat([normalize_poses(batch['start_pose']), normalize_poses(batch['goal_pose']),
+                           normalize_joints(batch['q']), batch['qd'] / _VELOCITY.to(batch['qd']),
+                           batch['gripper'] * torch.tensor([1 / panda.GRIPPER_OPEN_WIDTH, 1.0]).to(batch['q'])],
+                          dim=-1)
+        rank = torch.where(drop[:, None], self.null_rank, self.rank(batch['rank']))
+        points = torch.where(drop[:, None], self.null_points, self.points(normalize_positions(batch['points'])))
+        return torch.cat([self.state(state), rank, points], dim=-1)
+
+
+def fk_pose_loss(q: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    """Mean squared pose error of FK(q (..., 7)) against poses (..., 7): normalised
+    translation plus the squared Frobenius distance of the rotation matrices."""
+    position, rotation = forward_kinematics(q)
+    translation = ((normalize_positions(position) - normalize_positions(poses[..., :3])) ** 2).sum(-1)
+    rotation_error = ((rotation - quat_to_matrix(poses[..., 3:])) ** 2).sum((-2, -1))
+    return (translation + rotation_error).mean()
+
+
+class RKDiffuser(nn.Module):
+    """One condition encoder feeding two x0-predicting diffusers over (HORIZON, 7)."""
+
+    def __init__(self, config: RKDConfig):
+        super().__init__()
+        self.config = config
+        self.encoder = ConditionEncoder(config)
+        self.pose = self._diffuser(config)
+        self.joint = self._diffuser(config)
+
+    def _diffuser(self, config: RKDConfig) -> TrajectoryDiffusion:
+        net = TemporalUnet(7, self.encoder.out_dim, config.unet_dim, config.dim_mults)
+        return TrajectoryDiffusion(net, HORIZON, 7, config.diffusion_steps)
+
+    def loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
+        """batch: see dataset.SegmentDataset (unnormalised). Returns (total, {name: value})."""
+        b = batch['q'].shape[0]
+        cond = self.encoder(batch, torch.rand(b, device=batch['q'].device) < self.config.cond_dropout)
+        poses, joints = normalize_poses(batch['poses']), normalize_joints(batch['joints'])
+        l_pose, _ = self.pose.loss(poses, cond, {0: poses[:, 0], -1: poses[:, -1]})
+        l_joint, joints_hat = self.joint.loss(joints, cond, {0: joints[:, 0]})
+        l_fk = fk_pose_loss(unnormalize_joints(joints_hat), batch['poses'])
+        b1, b2, b3 = self.config.loss_weights
+        total = b1 * l_pose + b2 * l_joint + b3 * l_fk
+        return total, {'pose': l_pose.item(), 'joint': l_joint.item(), 'joint_to_pose': l_fk.item()}
+
+    @torch.no_grad()
+    def sample(self, batch: dict, sampler: str = 'ddpm', steps: int | None = None, guidance: float | None = None,
+               generator: torch.Generator | None = None, which=('pose', 'joint')) -> dict:
+        """Conditions (B, ...) -> {'poses': (B, T, 7) xyz + quat xyzw, 'joints': (B, T, 7) rad}."""
+        guidance = self.config.guidance if guidance is None else guidance
+        b = batch['q'].shape[0]
+        cond = self.encoder(batch, torch.zeros(b, dtype=torch.bool))
+        null = self.encoder(batch, torch.ones(b, dtype=torch.bool)) if guidance != 1.0 else None
+        out = {}
+        if 'pose' in which:
+            known = {0: normalize_poses(batch['start_pose']), -1: normalize_poses(batch['goal_pose'])}
+            out['poses'] = unnormalize_poses(self.pose.sample(cond, known, null, guidance, sampler, steps, generator))
+        if 'joint' in which:
+            known = {0: normalize_joints(batch['q'])}
+            joints = unnormalize_joints(self.joint.sample(cond, known, null, guidance, sampler, steps, generator))
+            out['joints'] = torch.maximum(torch.minimum(joints, _UPPER), _LOWER)
+        return out
+
+
+def parameter_count(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def as_batch(arrays: dict) -> dict:
+    """numpy / sequences (unbatched) -> float32 tensors with a leading batch dim of 1."""
+    return {k: torch.as_tensor(np.asarray(v, dtype=np.float32))[None] for k, v in arrays.items()}

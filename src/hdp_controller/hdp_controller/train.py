@@ -1,0 +1,124 @@
+"""Training loop for RK-Diffuser: seeded, resumable, CPU by default.
+
+Writes two files: ``OUT`` (the EMA weights + config + provenance: what
+inference and the release need) and ``OUT.resume`` (raw weights, optimiser,
+schedule and RNG state). Starting again with the same OUT, data and config
+continues from ``OUT.resume``; a different config refuses to mix.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from diffusers.optimization import get_cosine_schedule_with_warmup
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from tqdm import tqdm
+
+from . import checkpoint
+from .dataset import SegmentDataset, load_segments
+from .rk_diffuser import RKDConfig, RKDiffuser, parameter_count
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    steps: int = 8000
+    batch_size: int = 32
+    lr: float = 3e-4
+    weight_decay: float = 1e-4
+    warmup_steps: int = 200
+    ema_decay: float = 0.995
+    save_every: int = 500
+    seed: int = 0
+
+
+def _batches(dataset, batch_size: int, seed: int, device: str):
+    generator = torch.Generator().manual_seed(seed)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=True, drop_last=True,
+                                         generator=generator)
+    while True:
+        for batch in loader:
+            yield {k: v.to(device) for k, v in batch.items()}
+
+
+def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, device: str = 'cpu',
+          cache_dir=None, log=print) -> Path:
+    out = Path(out)
+    resume_path = out.with_name(out.name + '.resume')
+    torch.manual_seed(train_config.seed)
+    segs = load_segments(data_dir, model_config.n_points, cache_dir)
+    dataset = SegmentDataset(segs, augment=True, seed=train_config.seed)
+    model = RKDiffuser(model_config).to(device)
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(train_config.ema_decay))
+    optimizer = torch.optim.AdamW(model.parameters(), lr=train_config.lr, weight_decay=train_config.weight_decay)
+    schedule = get_cosine_schedule_with_warmup(optimizer, train_config.warmup_steps, train_config.steps)
+    step, elapsed = 0, 0.0
+    if resume_path.is_file():
+        state = torch.load(resume_path, map_location=device, weights_only=True)
+        saved = (state['model_config'], state['train_config'])
+        wanted = (dataclasses.asdict(model_config), dataclasses.asdict(train_config))
+        if _plain(saved[0]) != _plain(wanted[0]) or _plain(saved[1]) != _plain(wanted[1]):
+            raise ValueError(f'{resume_path} was written with another configuration; '
+                             'delete it or pass the same --config/--steps to resume')
+        model.load_state_dict(state['raw_model'])
+        ema.load_state_dict(state['ema'])
+        optimizer.load_state_dict(state['optimizer'])
+        schedule.load_state_dict(state['schedule'])
+        step, elapsed = state['step'], state['elapsed_s']
+        torch.set_rng_state(state['torch_rng'])
+        log(f'resuming from {resume_path} at step {step}')
+    log(f'{len(segs)} segments from {len(np.unique(np.char.add(segs.task, segs.seed.astype(str))))} episodes; '
+        f'{parameter_count(model) / 1e6:.2f} M parameters')
+    batches = _batches(dataset, train_config.batch_size, train_config.seed + step, device)
+    model.train()
+    started = time.monotonic() - elapsed
+    losses = []
+    with tqdm(total=train_config.steps, initial=step, desc='training RK-Diffuser', unit='step') as bar:
+        while step < train_config.steps:
+            loss, parts = model.loss(next(batches))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            optimizer.step()
+            schedule.step()
+            ema.update_parameters(model)
+            step += 1
+            losses.append(parts)
+            bar.update(1)
+            bar.set_postfix({k: f'{np.mean([p[k] for p in losses[-50:]]):.4f}' for k in parts})
+            if step % train_config.save_every == 0 or step == train_config.steps:
+                elapsed = time.monotonic() - started
+                _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config,
+                      train_config, segs, data_dir, losses[-50:])
+    return out
+
+
+def _plain(value):
+    """Config dicts compared after a save/load round trip (tuples come back as lists)."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config, train_config,
+          segs, data_dir, recent):
+    ema_model = ema.module
+    ema_model.config = model_config
+    checkpoint.save(out, ema_model, {
+        'training': {'step': step, 'steps': train_config.steps, 'wall_time_s': elapsed,
+                     'train_config': dataclasses.asdict(train_config), 'data': str(data_dir),
+                     'segments': len(segs), 'final_losses': {k: float(np.mean([r[k] for r in recent]))
+                                                              for k in recent[0]}},
+        'training_seeds': segs.training_seeds()})
+    state = {'step': step, 'elapsed_s': elapsed, 'raw_model': model.state_dict(), 'ema': ema.state_dict(),
+             'optimizer': optimizer.state_dict(), 'schedule': schedule.state_dict(),
+             'torch_rng': torch.get_rng_state(), 'model_config': dataclasses.asdict(model_config),
+             'train_config': dataclasses.asdict(train_config)}
+    tmp = resume_path.with_name(resume_path.name + '.tmp')
+    torch.save(state, tmp)
+    tmp.replace(resume_path)

@@ -1,0 +1,260 @@
+"""RK-Diffuser: kinematics, data preparation, networks, diffusion, refinement, checkpoints, training CLI."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from hdp_controller import checkpoint, kinematics
+from hdp_controller.dataset import SegmentDataset, load_segments, resample_by_arc_length, trajectory_rank
+from hdp_controller.diffusion import TrajectoryDiffusion
+from hdp_controller.low_level import HORIZON, SegmentRequest
+from hdp_controller.pointnet2 import PointNet2Encoder, ball_query, farthest_point_sample
+from hdp_controller.policy import conditions
+from hdp_controller.refine import goal_error, refine
+from hdp_controller.rk_diffuser import RKDConfig, RKDiffuser
+from hdp_controller.unet import TemporalUnet
+from hdp_msgs_py import panda
+from hdp_msgs_py.episodes import list_episodes, read_episode
+
+HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+SMALL = RKDConfig(unet_dim=8, point_features=16, point_width=8, n_points=64, diffusion_steps=10)
+
+
+@pytest.fixture(scope='module')
+def episodes(tmp_path_factory):
+    out = tmp_path_factory.mktemp('rkd_episodes')
+    result = subprocess.run([*HDP, 'collect', '--tasks', 'reach_target,open_drawer', '--episodes', '1',
+                             '--seed-start', '11', '--out', str(out), '--width', '64', '--height', '48'],
+                            text=True, capture_output=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+@pytest.fixture(scope='module')
+def segments(episodes, tmp_path_factory):
+    return load_segments(episodes, n_points=64, cache_dir=tmp_path_factory.mktemp('cache'), workers=1)
+
+
+def _batch(segs, n=4, seed=0):
+    data = SegmentDataset(segs, augment=True, seed=seed)
+    items = [data[i % len(data)] for i in range(n)]
+    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
+
+
+# --- kinematics ---------------------------------------------------------------------------
+
+def test_forward_kinematics_matches_pybullet():
+    from hdp_sim_bridge import motion
+    from hdp_sim_bridge.world import PandaWorld
+    rng = np.random.default_rng(0)
+    with PandaWorld() as world:
+        for _ in range(5):
+            q = rng.uniform(panda.LOWER, panda.UPPER)
+            xyz, quat = motion.ee_pose(world.client_id, world.robot, q)
+            pose = kinematics.fk_pose(torch.tensor(q, dtype=torch.float64))
+            assert np.allclose(pose[:3].numpy(), xyz, atol=1e-4)
+            _, angle = kinematics.pose_error(pose, torch.tensor(np.r_[xyz, quat]))
+            assert angle < 1e-3
+
+
+def test_quaternion_helpers_round_trip_and_continuity():
+    q = torch.nn.functional.normalize(torch.randn(10, 4, dtype=torch.float64), dim=-1)
+    back = kinematics.matrix_to_quat(kinematics.quat_to_matrix(q))
+    assert torch.allclose(back.abs(), q.abs(), atol=1e-6) and (back[:, 3] >= 0).all()
+    flipped = q.clone()
+    flipped[1::2] *= -1
+    smooth = kinematics.continuous_quats(flipped)
+    assert smooth[0, 3] >= 0
+    assert torch.allclose(kinematics.quat_to_matrix(smooth), kinematics.quat_to_matrix(q), atol=1e-6)
+
+
+# --- data -------------------------------------------------------------------------------
+
+def test_resampling_and_rank():
+    path = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])
+    out = resample_by_arc_length(path, 5)
+    assert np.allclose(out[[0, 2, 4]], path) and np.allclose(out[1], [0.5, 0.0])
+    assert np.allclose(resample_by_arc_length(np.zeros((3, 2)), 4), 0.0)
+    assert trajectory_rank(np.linspace([0, 0, 0], [1, 0, 0], 10)) == pytest.approx(1.0)
+    assert trajectory_rank(np.array([[0, 0, 0], [1, 1, 0], [2, 0, 0]], float)) == pytest.approx(2 / (2 * 2 ** 0.5))
+    assert trajectory_rank(np.zeros((5, 3))) == 1.0
+
+
+def test_segments_end_at_the_keyframes_the_high_level_uses(episodes, segments):
+    expected = 0
+    for path in list_episodes(episodes):
+        episode = read_episode(path)
+        keyframes = episode.keyframes()
+        expected += len(keyframes) - (keyframes[0] == 0)
+        first = segments.seed == episode.metadata['seed']
+        ends = segments.joints[first & (segments.task == episode.metadata['task'])][:, -1]
+        assert np.allclose(ends, episode.joint_states.position[[k for k in keyframes if k]], atol=1e-5)
+    assert len(segments) == expected
+    # Poses are the FK of the joints, waypoint by waypoint.
+    fk = kinematics.fk_pose(torch.from_numpy(segments.joints[0]).double())
+    _, angle = kinematics.pose_error(fk, torch.from_numpy(segments.poses[0]).double())
+    assert np.allclose(fk[:, :3], segments.poses[0][:, :3], atol=1e-5) and angle.max() < 1e-3
+    assert segments.points.shape == (len(segments), 64, 3)
+    assert segments.training_seeds() == {'open_drawer': [11], 'reach_target': [11]}
+
+
+def test_start_end_augmentation_stays_on_the_path(segments):
+    plain = SegmentDataset(segments, augment=False)[0]
+    moved = [SegmentDataset(segments, augment=True, seed=s)[0] for s in range(8)]
+    assert torch.allclose(plain['joints'], torch.from_numpy(segments.joints[0]))
+    assert any(not torch.allclose(m['joints'][0], plain['joints'][0]) for m in moved)
+    for m in moved:
+        assert torch.allclose(m['q'], m['joints'][0]) and torch.allclose(m['goal_pose'], m['poses'][-1])
+        # Never starts later than waypoint 5 or ends earlier than HORIZON - 6.
+        gap_start = (m['joints'][0] - plain['joints'][0]).abs().max()
+        assert gap_start <= (plain['joints'][5] - plain['joints'][0]).abs().max() + 1e-5
+
+
+def test_preprocessing_is_cached(episodes, tmp_path):
+    first = load_segments(episodes, n_points=64, cache_dir=tmp_path, workers=1)
+    assert len(list(tmp_path.glob('*.npz'))) == 1
+    again = load_segments(episodes, n_points=64, cache_dir=tmp_path, workers=1)
+    assert np.array_equal(first.joints, again.joints) and np.array_equal(first.task, again.task)
+
+
+# --- networks ---------------------------------------------------------------------------
+
+def test_farthest_point_sampling_and_ball_query():
+    cluster = torch.cat([torch.zeros(20, 3), torch.ones(1, 3) * 5, -torch.ones(1, 3) * 5])[None]
+    picked = farthest_point_sample(cluster, 3)[0].tolist()
+    assert picked[0] == 0 and set(picked[1:]) == {20, 21}
+    idx = ball_query(cluster, cluster[:, [20]], radius=1.0, k=4)
+    assert (idx == 20).all()          # alone in its ball: the centroid repeats
+
+
+def test_pointnet_encoder_sees_geometry():
+    torch.manual_seed(0)
+    encoder = PointNet2Encoder(out_dim=16, width=8)
+    points = torch.rand(2, 256, 3) * 2 - 1
+    shifted = points.clone()
+    shifted[1, :64] += 0.5
+    out = encoder(shifted)
+    assert out.shape == (2, 16) and not torch.allclose(out[0], out[1])
+
+
+def test_unet_shapes():
+    net = TemporalUnet(7, 12, dim=8)
+    assert net(torch.randn(3, HORIZON, 7), torch.tensor([0, 5, 9]), torch.randn(3, 12)).shape == (3, HORIZON, 7)
+
+
+def test_sampling_holds_inpainted_waypoints():
+    torch.manual_seed(0)
+    diffusion = TrajectoryDiffusion(TemporalUnet(7, 4, dim=8), HORIZON, 7, train_steps=10)
+    known = {0: torch.ones(2, 7), -1: -torch.ones(2, 7)}
+    for sampler in ('ddpm', 'ddim'):
+        x = diffusion.sample(torch.randn(2, 4), known, null_cond=torch.zeros(2, 4), guidance=1.2, sampler=sampler,
+                             steps=5)
+        assert torch.equal(x[:, 0], known[0]) and torch.equal(x[:, -1], known[-1])
+
+
+def test_training_reduces_the_loss(segments):
+    torch.manual_seed(0)
+    model = RKDiffuser(SMALL)
+    batch = _batch(segments, 8)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(30):
+        torch.manual_seed(1)           # the same noise and steps each time: a pure fit
+        loss, parts = model.loss(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert set(parts) == {'pose', 'joint', 'joint_to_pose'}
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_sample_returns_goal_pose_and_joints_in_limits(segments):
+    model = RKDiffuser(SMALL).eval()
+    batch = _batch(segments, 2)
+    out = model.sample(batch, sampler='ddim', steps=3)
+    assert torch.allclose(out['poses'][:, -1, :3], batch['goal_pose'][:, :3], atol=1e-5)
+    assert torch.allclose(out['joints'][:, 0], batch['q'], atol=1e-5)
+    assert (out['joints'] >= torch.tensor(panda.LOWER) - 1e-6).all()
+    assert (out['joints'] <= torch.tensor(panda.UPPER) + 1e-6).all()
+
+
+# --- refinement ---------------------------------------------------------------------------
+
+def test_refinement_holds_the_start_respects_limits_and_reaches_the_goal():
+    torch.manual_seed(0)
+    q0 = torch.tensor(panda.HOME, dtype=torch.float32)
+    q1 = q0 + torch.tensor([0.3, 0.2, -0.2, 0.3, 0.1, -0.2, 0.4])
+    truth = (q0 + (q1 - q0) * torch.linspace(0, 1, HORIZON)[:, None])[None]
+    poses = kinematics.fk_pose(truth)
+    noisy = truth + 0.05 * torch.randn_like(truth)
+    noisy[:, 0] = truth[:, 0]
+    refined = refine(noisy, poses, steps=100, lr=0.05)
+    translation, rotation = goal_error(refined, poses[:, -1])
+    assert torch.equal(refined[:, 0], truth[:, 0])
+    assert translation.item() < 2e-3 and np.degrees(rotation.item()) < 0.5
+    # A pose trajectory that pulls joint 4 beyond its upper limit: clamped, never past.
+    beyond = truth.clone()
+    beyond[..., 3] = torch.linspace(-1.0, 0.5, HORIZON)
+    out = refine(truth, kinematics.fk_pose(beyond), steps=30, lr=0.05)
+    assert (out[:, 1:, 3] <= panda.UPPER[3]).all() and (out >= torch.tensor(panda.LOWER, dtype=out.dtype)).all()
+
+
+def test_conditions_canonicalise_quaternion_signs():
+    request = SegmentRequest(q=panda.HOME, qd=np.zeros(7), gripper_width=0.08, gripper_open=True,
+                             start_pose=np.array([0.5, 0, 1.0, 0, 0, 0.6, -0.8]),
+                             goal_pose=np.array([0.5, 0.1, 1.0, 0, 0, -0.6, 0.8]), points=np.zeros((8, 3)))
+    batch = conditions(request)
+    assert batch['start_pose'][0, 6] > 0 and torch.dot(batch['start_pose'][0, 3:], batch['goal_pose'][0, 3:]) > 0
+    assert batch['rank'].item() == 1.0
+
+
+# --- checkpoints and CLI ---------------------------------------------------------------------
+
+def test_checkpoint_round_trip_and_refusals(tmp_path):
+    model = RKDiffuser(SMALL)
+    path = tmp_path / 'model.pt'
+    checkpoint.save(path, model, {'training_seeds': {'reach_target': [1, 2]}})
+    loaded, payload = checkpoint.load_model(path)
+    assert payload['training_seeds'] == {'reach_target': [1, 2]}
+    for name, tensor in model.state_dict().items():
+        assert torch.equal(tensor, loaded.state_dict()[name])
+    (tmp_path / 'junk.pt').write_bytes(b'not a checkpoint')
+    with pytest.raises(checkpoint.CheckpointError, match='not a loadable'):
+        checkpoint.read(tmp_path / 'junk.pt')
+
+    class Evil:
+        def __reduce__(self):
+            return (print, ('pwned',))
+    torch.save({'format': checkpoint.FORMAT, 'version': 1, 'config': {}, 'model': {}, 'x': Evil()},
+               tmp_path / 'evil.pt')
+    with pytest.raises(checkpoint.CheckpointError):
+        checkpoint.read(tmp_path / 'evil.pt')
+    payload = torch.load(path, weights_only=True)
+    payload['model']['pose.net.final.1.weight'] = torch.zeros(3)
+    torch.save(payload, tmp_path / 'shape.pt')
+    with pytest.raises(checkpoint.CheckpointError, match='wrong shape'):
+        checkpoint.load_model(tmp_path / 'shape.pt')
+
+
+def test_train_cli_runs_and_resumes(episodes, tmp_path):
+    config = tmp_path / 'small.yaml'
+    config.write_text('model: {unet_dim: 8, point_features: 16, point_width: 8, n_points: 64, diffusion_steps: 10}\n'
+                      'train: {batch_size: 2, save_every: 2, warmup_steps: 1}\n')
+    out = tmp_path / 'rkd.pt'
+    base = [*HDP, 'train', 'low-level', '--data', str(episodes), '--out', str(out), '--config', str(config),
+            '--cache', str(tmp_path / 'cache')]
+    first = subprocess.run([*base, '--steps', '2'], text=True, capture_output=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    assert checkpoint.read(out)['training']['step'] == 2
+    again = subprocess.run([*base, '--steps', '2'], text=True, capture_output=True, timeout=300)
+    assert again.returncode != 0 and 'another configuration' in again.stderr
+    (tmp_path / 'rkd.pt.resume').unlink()
+    fresh = subprocess.run([*base, '--steps', '4'], text=True, capture_output=True, timeout=300)
+    assert fresh.returncode == 0 and checkpoint.read(out)['training']['step'] == 4
+    bad = subprocess.run([*HDP, 'train', 'low-level', '--data', str(tmp_path), '--out', str(out)],
+                         text=True, capture_output=True, timeout=120)
+    assert bad.returncode != 0 and 'no successful episodes' in bad.stderr
