@@ -13,6 +13,7 @@ setup(
     install_requires=[
         'setuptools',
         'hdp_msgs_py',
+        'hdp_sim_bridge',
         'numpy',
         'pyyaml',
         'tqdm',
@@ -27,6 +28,10 @@ setup(
     entry_points={
         'console_scripts': [
             'planner_node = hdp_planner.planner_node:main',
+        ],
+        'hdp.commands': [
+            'train.high-level = hdp_planner.cli:configure_train',
+            'eval.high-level-offline = hdp_planner.cli:configure_eval',
         ],
     },
 )

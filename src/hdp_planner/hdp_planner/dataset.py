@@ -1,0 +1,256 @@
+"""Episodes -> next-best-pose samples: (observation, instruction, proprio) -> (pose, gripper) at the next keyframe.
+
+Every recorded camera frame is an observation (the collector records the
+start and every rest, so these are the keyframes; frames between keyframes,
+where a recording has them, are PerAct's demo augmentation for free). Its
+target is the first keyframe after it: the end-effector pose (PyBullet
+forward kinematics of panda_grasptarget, world frame) and the commanded
+gripper state there. A frame within KEYFRAME_SNAP of a keyframe shows that
+keyframe's rest, so it targets the one after.
+
+Decoding bags is slow, so each episode's samples (workspace points and
+colours, proprio, targets) are cached as one npz under the cache directory,
+keyed by the bag's size and modification time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hdp_msgs_py import topics
+from hdp_msgs_py.conversions import camera_info_to_intrinsics, image_to_numpy, transform_to_matrix
+from hdp_msgs_py.episodes import list_episodes, read_episode
+from hdp_msgs_py.workspace import WORKSPACE
+
+from . import language, rotations
+from .model import proprio_vector
+from .voxels import scene_points
+
+CACHE_VERSION = 1
+KEYFRAME_SNAP = 0.02          # s
+FRAME_PAIRING = 0.05          # s: a camera's frame this close counts as the same moment
+WORLD_FRAME = 'world'
+
+TRANSLATION_RANGE = 0.125     # m, each axis
+YAW_RANGE = 45                # deg
+YAW_STEP = 5                  # deg
+MAX_REDRAWS = 10
+
+
+class PandaKinematics:
+    """World pose of panda_grasptarget from arm joint positions, with the sim's own URDF and base."""
+
+    def __init__(self):
+        import pybullet
+        import pybullet_data
+        from pybullet_utils.bullet_client import BulletClient
+
+        from hdp_sim_bridge.world import ROBOT_BASE
+        self.client = BulletClient(connection_mode=pybullet.DIRECT)
+        self.client.setAdditionalSearchPath(pybullet_data.getDataPath())
+        self.robot = self.client.loadURDF('franka_panda/panda.urdf', ROBOT_BASE, useFixedBase=True)
+
+    def ee_pose(self, joint_positions) -> tuple[np.ndarray, np.ndarray]:
+        """xyz (N, 3) m and quaternions (N, 4) xyzw of (N, 7) joint positions."""
+        from hdp_sim_bridge.world import ARM_JOINT_IDS, EE_LINK
+        xyz, quat = [], []
+        for q in np.asarray(joint_positions, dtype=np.float64):
+            for joint, angle in zip(ARM_JOINT_IDS, q):
+                self.client.resetJointState(self.robot, joint, angle)
+            state = self.client.getLinkState(self.robot, EE_LINK, computeForwardKinematics=True)
+            xyz.append(state[4])
+            quat.append(state[5])
+        return np.array(xyz).reshape(-1, 3), np.array(quat).reshape(-1, 4)
+
+    def close(self) -> None:
+        self.client.disconnect()
+
+
+def _depth_metres(msg) -> np.ndarray:
+    depth = image_to_numpy(msg)
+    return depth * np.float32(0.001) if msg.encoding == '16UC1' else depth.astype(np.float32)
+
+
+def camera_frames(episode) -> list[tuple[float, dict]]:
+    """[(t, camera -> (rgb (H, W, 3) uint8, depth (H, W) float32 m))] at each frame of the first camera
+    that every camera has a colour and depth frame for (within FRAME_PAIRING)."""
+    streams = {}
+    for camera in topics.CAMERAS:
+        colour = list(episode.messages(topics.color_image(camera)))
+        depth = list(episode.messages(topics.depth_image(camera)))
+        streams[camera] = (colour, depth, np.array([t for t, _ in colour]), np.array([t for t, _ in depth]))
+    frames = []
+    for t, _ in streams[topics.CAMERAS[0]][0]:
+        frame = {}
+        for camera, (colour, depth, colour_t, depth_t) in streams.items():
+            i, j = np.abs(colour_t - t).argmin(), np.abs(depth_t - t).argmin()
+            if abs(colour_t[i] - t) > FRAME_PAIRING or abs(depth_t[j] - t) > FRAME_PAIRING:
+                break
+            rgb = image_to_numpy(colour[i][1])
+            frame[camera] = (rgb[..., ::-1] if colour[i][1].encoding == 'bgr8' else rgb, _depth_metres(depth[j][1]))
+        else:
+            frames.append((t, frame))
+    return frames
+
+
+def camera_geometry(episode) -> tuple[dict, dict]:
+    """(camera -> Intrinsics, camera -> (4, 4) camera-to-world) from the bag's camera infos and /tf_static."""
+    intrinsics, to_world = {}, {}
+    for camera in topics.CAMERAS:
+        info = episode.camera_info(camera)
+        transform = episode.tf_static.get(info.header.frame_id)
+        if transform is None or transform.header.frame_id != WORLD_FRAME:
+            raise ValueError(f'{episode.path}: no /tf_static from {WORLD_FRAME!r} to {info.header.frame_id!r}')
+        intrinsics[camera] = camera_info_to_intrinsics(info)
+        to_world[camera] = transform_to_matrix(transform)
+    return intrinsics, to_world
+
+
+def episode_samples(episode, kinematics: PandaKinematics) -> dict:
+    """One episode's samples as arrays, n of them:
+    xyz (P, 3) float32 and rgb (P, 3) uint8 workspace points of all n observations, split at
+    starts (n + 1,); joint_positions (n, 7), gripper_open (n,) at each observation;
+    target_xyz (n, 3), target_quat (n, 4), target_open (n,) at the keyframe after it;
+    plus task, variation and seed."""
+    js = episode.joint_states
+    keyframes = np.array(episode.keyframes(), dtype=np.int64)
+    intrinsics, to_world = camera_geometry(episode)
+    clouds, state, target = [], [], []
+    for t, frame in camera_frames(episode):
+        later = keyframes[js.t[keyframes] > t + KEYFRAME_SNAP]
+        if not len(later):
+            continue
+        clouds.append(scene_points(frame, intrinsics, to_world))
+        state.append(max(int(np.searchsorted(js.t, t, side='right')) - 1, 0))   # the state the frame shows
+        target.append(later[0])
+    target_xyz, target_quat = kinematics.ee_pose(js.position[target])
+    return {
+        'xyz': np.concatenate([c[0] for c in clouds]).reshape(-1, 3).astype(np.float32),
+        'rgb': np.concatenate([c[1] for c in clouds]).reshape(-1, 3).astype(np.uint8),
+        'starts': np.cumsum([0] + [len(c[0]) for c in clouds]),
+        'joint_positions': js.position[state].reshape(-1, 7),
+        'gripper_open': js.gripper_open[state].astype(bool),
+        'target_xyz': target_xyz, 'target_quat': target_quat,
+        'target_open': js.gripper_open[target].astype(bool),
+        'task': np.array(episode.metadata['task']),
+        'variation': np.array(int(episode.metadata.get('variation', 0))),
+        'seed': np.array(int(episode.metadata.get('seed', -1))),
+    }
+
+
+def _fingerprint(bag: Path) -> str:
+    files = sorted(p for p in bag.iterdir() if p.is_file())
+    return f'v{CACHE_VERSION}:' + ','.join(f'{p.name}:{p.stat().st_size}:{p.stat().st_mtime_ns}' for p in files)
+
+
+def default_cache_dir(data_dir) -> Path:
+    """The cache next to the data: <data>_cache."""
+    data_dir = Path(data_dir)
+    return data_dir.with_name(data_dir.name + '_cache')
+
+
+def load_samples(bag: Path, cache_dir: Path, kinematics: PandaKinematics) -> dict:
+    """episode_samples of ``bag``, from the cache when it is current, else decoded and cached."""
+    cached = cache_dir / f'{bag.name}.npz'
+    fingerprint = _fingerprint(bag)
+    if cached.is_file():
+        with np.load(cached) as stored:
+            if str(stored['fingerprint']) == fingerprint:
+                return {k: stored[k] for k in stored.files if k != 'fingerprint'}
+    samples = episode_samples(read_episode(bag), kinematics)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    partial = cached.with_suffix('.partial.npz')
+    np.savez(partial, fingerprint=np.array(fingerprint), **samples)
+    partial.replace(cached)
+    return samples
+
+
+def yaw_about_centre(xyz, angle: float, centre=None) -> np.ndarray:
+    """(N, 3) points turned by ``angle`` rad about the vertical axis through ``centre`` (default: the workspace's)."""
+    centre = WORKSPACE.mean(0) if centre is None else np.asarray(centre)
+    c, s = math.cos(angle), math.sin(angle)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return ((np.asarray(xyz) - centre) @ rotation.T + centre).astype(np.float32)
+
+
+def augment(xyz, target_xyz, target_quat, rng: np.random.Generator):
+    """Scene and target moved together: a world-frame yaw about the workspace centre (+-45 deg in
+    5 deg steps), then a shift of up to +-12.5 cm per axis; redrawn until the target stays in the
+    workspace (unchanged after MAX_REDRAWS). Returns (xyz (N, 3), target_xyz (3,), target_quat (4,))."""
+    for _ in range(MAX_REDRAWS):
+        angle = math.radians(YAW_STEP * rng.integers(-YAW_RANGE // YAW_STEP, YAW_RANGE // YAW_STEP + 1))
+        shift = rng.uniform(-TRANSLATION_RANGE, TRANSLATION_RANGE, 3)
+        moved = yaw_about_centre(np.asarray(target_xyz)[None], angle)[0] + shift
+        if np.all(moved > WORKSPACE[0]) and np.all(moved < WORKSPACE[1]):
+            return (yaw_about_centre(xyz, angle) + shift.astype(np.float32), moved,
+                    rotations.yaw_quat(target_quat, angle))
+    return np.asarray(xyz), np.asarray(target_xyz), np.asarray(target_quat)
+
+
+@dataclasses.dataclass
+class Item:
+    """One sample ready for the model: xyz (N, 3) float32, rgb (N, 3) uint8, proprio (8,),
+    instruction, target_xyz (3,), target_quat (4,), target_open, task."""
+    xyz: np.ndarray
+    rgb: np.ndarray
+    proprio: np.ndarray
+    instruction: str
+    target_xyz: np.ndarray
+    target_quat: np.ndarray
+    target_open: bool
+    task: str
+
+
+class KeyframeDataset:
+    """Samples of many episodes (dicts as episode_samples returns them)."""
+
+    def __init__(self, episodes: list[dict]):
+        self.episodes = episodes
+        self.index = np.array([(e, s) for e, episode in enumerate(episodes)
+                               for s in range(len(episode['target_open']))], dtype=np.int64).reshape(-1, 2)
+        self.tasks = np.array([str(episodes[e]['task']) for e, _ in self.index])
+
+    @classmethod
+    def from_directory(cls, data_dir, cache_dir=None, progress: bool = True) -> KeyframeDataset:
+        """Every successful episode under ``data_dir``, decoded once and cached (default: <data_dir>_cache)."""
+        from tqdm import tqdm
+        bags = list_episodes(data_dir)
+        if not bags:
+            raise FileNotFoundError(f'no successful episodes in {data_dir}')
+        cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(data_dir)
+        kinematics = PandaKinematics()
+        try:
+            return cls([load_samples(bag, cache_dir, kinematics)
+                        for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)])
+        finally:
+            kinematics.close()
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def draw(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """(count,) sample indices, each task equally likely whatever its number of keyframes."""
+        names = np.unique(self.tasks)
+        chosen = names[rng.integers(len(names), size=count)]
+        return np.array([rng.choice(np.flatnonzero(self.tasks == name)) for name in chosen])
+
+    def item(self, i: int, rng: np.random.Generator, augmented: bool = False, heldout: bool = False) -> Item:
+        """Sample ``i`` with an instruction drawn from the training (or held-out) phrasings of its
+        task, and, when ``augmented``, a random yaw and shift of scene and target."""
+        e, s = self.index[i]
+        episode = self.episodes[e]
+        start, stop = episode['starts'][s], episode['starts'][s + 1]
+        xyz, rgb = episode['xyz'][start:stop], episode['rgb'][start:stop]
+        target_xyz, target_quat = episode['target_xyz'][s], episode['target_quat'][s]
+        if augmented:
+            xyz, target_xyz, target_quat = augment(xyz, target_xyz, target_quat, rng)
+        task = str(episode['task'])
+        phrasings = language.heldout_phrasings(task) if heldout else language.training_phrasings(task)
+        return Item(xyz, rgb, proprio_vector(episode['joint_positions'][s], episode['gripper_open'][s]),
+                    language.instruction(task, int(episode['variation']), phrasings, rng),
+                    np.asarray(target_xyz, dtype=np.float32), np.asarray(target_quat, dtype=np.float64),
+                    bool(episode['target_open'][s]), task)

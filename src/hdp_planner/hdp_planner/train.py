@@ -1,0 +1,146 @@
+"""Training the next-best-pose network: batches, losses, the loop, resumable checkpoints.
+
+Level 1 learns the ground-truth coarse voxel; level 2 sees a cube around the
+ground truth moved by up to FINE_JITTER per axis (so it learns to correct a
+coarse guess) and learns the voxel, offset, rotation bins and gripper there.
+Cross-entropy on every discrete head (rotation: one per Euler axis), L1 on
+the offset, summed. AdamW with a short warmup and a cosine decay.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import checkpoint, rotations, voxels
+from .dataset import KeyframeDataset
+from .evaluate import format_metrics, offline_metrics
+from .language import task_vocabulary
+from .model import ModelConfig, NextBestPoseNet
+
+FINE_JITTER = 0.09        # m, each axis; < FINE_HALF_EXTENT so the target stays inside the cube
+WARMUP_STEPS = 200
+FINAL_LR_FRACTION = 0.1
+
+
+def training_batch(items, config: ModelConfig, rng: np.random.Generator, device='cpu') -> dict:
+    """Tensors for ``losses`` from dataset Items: both grids, the fine cube centres, and labels."""
+    n, size = len(items), config.grid_size
+    xyz, rgb, cloud = voxels.collate_clouds([(i.xyz, i.rgb) for i in items], device)
+    target = torch.as_tensor(np.stack([i.target_xyz for i in items]), dtype=torch.float32, device=device)
+    lower, upper = (b.to(device) for b in voxels.workspace_bounds(n))
+    coarse_index, _ = voxels.voxel_of(target, lower, upper, size)
+    jitter = rng.uniform(-FINE_JITTER, FINE_JITTER, (n, 3))
+    centre = target + torch.as_tensor(jitter, dtype=torch.float32, device=device)
+    fine_lower, fine_upper = voxels.fine_bounds(centre, config.fine_half_extent)
+    fine_index, offset = voxels.voxel_of(target, fine_lower, fine_upper, size)
+    return {
+        'instructions': [i.instruction for i in items],
+        'proprio': torch.as_tensor(np.stack([i.proprio for i in items]), device=device),
+        'coarse_grid': voxels.voxelise(xyz, rgb, cloud, lower, upper, size),
+        'coarse_index': coarse_index,
+        'fine_grid': voxels.voxelise(xyz, rgb, cloud, fine_lower, fine_upper, size),
+        'centre': centre, 'fine_index': fine_index, 'offset': offset,
+        'rotation': torch.as_tensor(rotations.quat_to_bins(np.stack([i.target_quat for i in items])), device=device),
+        'gripper': torch.as_tensor([int(i.target_open) for i in items], device=device),
+    }
+
+
+def losses(model: NextBestPoseNet, batch: dict) -> dict:
+    """Per-head losses (scalars) and their sum under 'total'."""
+    condition = model.condition(batch['instructions'], batch['proprio'])
+    coarse = model.coarse_logits(batch['coarse_grid'], condition)
+    fine = model.fine_outputs(batch['fine_grid'], condition, batch['centre'], batch['fine_index'])
+    parts = {
+        'coarse': F.cross_entropy(coarse, batch['coarse_index']),
+        'fine': F.cross_entropy(fine['logits'], batch['fine_index']),
+        'offset': F.l1_loss(fine['offset'], batch['offset']),
+        'rotation': 3 * F.cross_entropy(fine['rotation'].reshape(-1, rotations.BINS), batch['rotation'].reshape(-1)),
+        'gripper': F.cross_entropy(fine['gripper'], batch['gripper']),
+    }
+    parts['total'] = sum(parts.values())
+    return parts
+
+
+def learning_rate(step: int, steps: int, peak: float) -> float:
+    """Linear warmup to ``peak``, then cosine decay to FINAL_LR_FRACTION x peak at ``steps``."""
+    if step < WARMUP_STEPS:
+        return peak * (step + 1) / WARMUP_STEPS
+    progress = min(1.0, (step - WARMUP_STEPS) / max(1, steps - WARMUP_STEPS))
+    return peak * (FINAL_LR_FRACTION + (1 - FINAL_LR_FRACTION) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def _differences(now: dict, stored: dict) -> list[str]:
+    """'section.key: stored -> now' for every config value that differs."""
+    return [f'{section}.{key}: {stored.get(section, {}).get(key)!r} -> {value!r}'
+            for section, values in now.items() for key, value in values.items()
+            if stored.get(section, {}).get(key) != value]
+
+
+def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed: int = 0, val_data=None,
+          device: str = 'cpu', cache=None, save_every: int = 250, val_every: int = 1000,
+          model_config: ModelConfig | None = None, log=print, progress: bool = True) -> dict:
+    """Train (or continue training) the checkpoint at ``out``; returns the last validation metrics.
+
+    An existing ``out`` is continued when its config matches this run's
+    (data, steps, batch, lr, seed, model); a different config is refused.
+    """
+    from tqdm import tqdm
+    out = Path(out)
+    dataset = KeyframeDataset.from_directory(data, cache, progress)
+    val = KeyframeDataset.from_directory(val_data, progress=progress) if val_data else None
+    model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()))
+    train_config = {'data': str(Path(data).resolve()), 'steps': steps, 'batch': batch, 'lr': lr, 'seed': seed}
+    model = NextBestPoseNet(model_config).to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    step, metrics = 0, {}
+    if out.exists():
+        stored = checkpoint.load(out)
+        wanted = {'model': model_config.to_dict(), 'train': train_config}
+        changed = _differences(json.loads(json.dumps(wanted)), stored['config'])
+        if changed:
+            raise checkpoint.CheckpointError(f'{out} was trained with another config ({"; ".join(changed)}); '
+                                             'choose another --out or the same options')
+        model.load_state_dict(checkpoint.build_model(stored, out).state_dict())
+        optimizer.load_state_dict(stored['optimizer'])
+        step, metrics = stored['step'], stored['metrics']
+        log(f'continuing {out} from step {step}')
+    per_task = ', '.join(f'{t}: {(dataset.tasks == t).sum()}' for t in np.unique(dataset.tasks))
+    log(f'{len(dataset)} training samples ({per_task}){f"; {len(val)} validation samples" if val else ""}; '
+        f'{sum(p.numel() for p in model.parameters()):,} parameters')
+    # Seeded per (seed, step): a continued run is reproducible from where it resumed.
+    rng = np.random.default_rng([seed, step])
+    torch.manual_seed(seed * 1_000_003 + step)
+    model.train()
+    started, running, counted = time.monotonic(), {}, 0
+    with tqdm(total=steps, initial=step, unit='step', disable=not progress, mininterval=30) as bar:
+        while step < steps:
+            for group in optimizer.param_groups:
+                group['lr'] = learning_rate(step, steps, lr)
+            items = [dataset.item(i, rng, augmented=True) for i in dataset.draw(batch, rng)]
+            parts = losses(model, training_batch(items, model_config, rng, device))
+            optimizer.zero_grad(set_to_none=True)
+            parts['total'].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            optimizer.step()
+            step += 1
+            for name, value in parts.items():
+                running[name] = running.get(name, 0.0) + value.item()
+            counted += 1
+            bar.update()
+            if step % 100 == 0 or step == steps:
+                bar.write(f'step {step}: ' + ' '.join(f'{k} {v / counted:.3f}' for k, v in running.items())
+                          + f' ({(time.monotonic() - started) / 60:.1f} min)')
+                running, counted = {}, 0
+            if val and (step % val_every == 0 or step == steps):
+                metrics = {'step': step, 'validation': offline_metrics(model, val)}
+                bar.write(f'validation at step {step}:\n{format_metrics(metrics["validation"])}')
+            if step % save_every == 0 or step == steps:
+                checkpoint.save(out, model, optimizer, step, train_config, metrics)
+    return metrics

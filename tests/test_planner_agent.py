@@ -1,0 +1,238 @@
+"""The high-level next-best-pose agent: language, voxels, rotations, augmentation, training, checkpoints, CLI.
+
+Fast and single-threaded: the networks here are tiny versions of the real one.
+"""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from hdp_msgs_py.conversions import Intrinsics, quat_to_matrix
+from hdp_msgs_py.workspace import WORKSPACE
+from hdp_planner import checkpoint, language, rotations, voxels
+from hdp_planner.agent import NextBestPoseAgent
+from hdp_planner.dataset import KeyframeDataset, augment
+from hdp_planner.model import ModelConfig, NextBestPoseNet, proprio_vector
+from hdp_planner.train import losses, training_batch
+from hdp_sim_bridge.tasks import TASKS
+
+torch.set_num_threads(1)
+
+TINY = dict(grid_size=8, channels=(4, 8, 8), language_dim=16, head_hidden=32)
+
+
+def tiny_model(seed=0) -> NextBestPoseNet:
+    torch.manual_seed(seed)
+    return NextBestPoseNet(ModelConfig(vocabulary=tuple(language.task_vocabulary()), **TINY))
+
+
+def synthetic_episode(rng, task='open_drawer', samples=2) -> dict:
+    """An episode's samples as episode_samples returns them: a box of points per observation."""
+    clouds = [rng.uniform(WORKSPACE[0] + 0.1, WORKSPACE[1] - 0.1, (200, 3)).astype(np.float32) for _ in range(samples)]
+    quat = rotations.euler_to_quat(rng.uniform(-1, 1, (samples, 3)))
+    return {'xyz': np.concatenate(clouds), 'rgb': rng.integers(0, 256, (200 * samples, 3), dtype=np.uint8),
+            'starts': np.arange(samples + 1) * 200, 'joint_positions': np.zeros((samples, 7)),
+            'gripper_open': np.ones(samples, bool), 'target_xyz': np.stack([c[0] for c in clouds]).astype(np.float64),
+            'target_quat': quat, 'target_open': np.arange(samples) % 2 == 0, 'task': np.array(task),
+            'variation': np.array(1), 'seed': np.array(0)}
+
+
+# --- language -----------------------------------------------------------------------
+
+def test_tokenizer_lowercases_strips_punctuation_and_maps_unknown_words_to_unk():
+    tokenizer = language.Tokenizer(['open', 'the', 'drawer'], max_words=6)
+    ids = tokenizer.encode(['Open the FRIDGE!', ''])
+    open_, the = tokenizer.ids['open'], tokenizer.ids['the']
+    assert ids[0].tolist() == [open_, the, 1, 0, 0, 0]
+    assert ids[1].tolist() == [1, 0, 0, 0, 0, 0]          # no words: a lone <unk>
+    assert tokenizer.encode(['the ' * 10]).shape == (1, 6)
+
+
+def test_vocabulary_covers_every_phrasing_and_variation():
+    tokenizer = language.Tokenizer(language.task_vocabulary())
+    for cls in TASKS.values():
+        for template in cls.phrasings:
+            for variation in cls.variations:
+                assert 1 not in tokenizer.encode([template.replace('{}', variation)])[0].tolist()
+
+
+def test_heldout_phrasings_are_never_drawn_for_training():
+    rng = np.random.default_rng(0)
+    for name, cls in TASKS.items():
+        (heldout,) = language.heldout_phrasings(name)
+        assert heldout == cls.phrasings[-1]
+        assert heldout not in language.training_phrasings(name)
+        variation = len(cls.variations) - 1
+        task = cls()
+        task.variation = variation
+        heldout_text = task.instruction(rng, (heldout,))
+        drawn = {language.instruction(name, variation, language.training_phrasings(name), rng) for _ in range(100)}
+        assert heldout_text not in drawn and len(drawn) == len(cls.phrasings) - 1
+    dataset = KeyframeDataset([synthetic_episode(rng)])
+    bottom_heldout = 'slide the middle drawer open'
+    assert all(dataset.item(0, rng).instruction != bottom_heldout for _ in range(50))
+    assert dataset.item(0, rng, heldout=True).instruction == bottom_heldout
+
+
+def test_word_encoder_shapes_and_padding():
+    encoder = language.WordEncoder(language.task_vocabulary(), dim=16).eval()
+    tokens, pooled = encoder(['open the top drawer', 'open box'])
+    assert tokens.shape == (2, language.MAX_WORDS, 16) and pooled.shape == (2, 16)
+    assert torch.all(tokens[1, 2:] == 0)
+
+
+# --- voxels ------------------------------------------------------------------------
+
+def test_point_lands_in_its_voxel_with_mean_colour_and_position():
+    lower, upper = voxels.workspace_bounds(1)
+    edge = (upper - lower)[0] / 16
+    corner = lower[0] + torch.tensor([3, 5, 7]) * edge
+    xyz = torch.stack([corner + 0.25 * edge, corner + 0.75 * edge])
+    rgb = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0]])
+    grid = voxels.voxelise(xyz, rgb, torch.zeros(2, dtype=torch.long), lower, upper)
+    assert grid.shape == (1, voxels.CHANNELS, 16, 16, 16)
+    cell = grid[0, :, 3, 5, 7]
+    assert cell[6] == 1 and grid[0, 6].sum() == 1                          # one occupied voxel
+    assert torch.allclose(cell[3:6], torch.tensor([0.0, -1.0, 0.0]))       # mean colour
+    centre = (corner + 0.5 * edge - lower[0]) / (upper - lower)[0] * 2 - 1
+    assert torch.allclose(cell[:3], centre, atol=1e-6)                     # mean position, normalised
+    assert torch.allclose(cell[7:], torch.tensor([3, 5, 7]) / 15 * 2 - 1)  # voxel index
+    index, offset = voxels.voxel_of(xyz[:1], lower, upper)
+    assert index.item() == (3 * 16 + 5) * 16 + 7
+    assert torch.allclose(voxels.position_of(index, offset, lower, upper), xyz[:1], atol=1e-6)
+
+
+def test_points_outside_the_grid_are_dropped_and_batches_kept_apart():
+    centre = torch.tensor([[0.5, 0.0, 1.0], [0.6, 0.1, 1.0]])
+    lower, upper = voxels.fine_bounds(centre)
+    xyz = torch.tensor([[0.5, 0.0, 1.0], [0.9, 0.0, 1.0], [0.6, 0.1, 1.0]])
+    grid = voxels.voxelise(xyz, torch.zeros(3, 3), torch.tensor([0, 0, 1]), lower, upper)
+    assert grid[:, 6].sum(dim=(1, 2, 3)).tolist() == [1.0, 1.0]
+
+
+def test_camera_points_unproject_with_their_colours():
+    intrinsics = Intrinsics(100.0, 100.0, 1.0, 1.0, 3, 3)
+    depth = np.zeros((3, 3), np.float32)
+    depth[1, 1], depth[0, 2] = 2.0, 1.0
+    rgb = np.zeros((3, 3, 3), np.uint8)
+    rgb[1, 1], rgb[0, 2] = (255, 0, 0), (0, 255, 0)
+    camera_to_world = np.eye(4)
+    camera_to_world[:3, 3] = (0.5, 0.0, 1.0)
+    xyz, colours = voxels.camera_points(rgb, depth, intrinsics, camera_to_world)
+    assert np.allclose(xyz, [[0.51, -0.01, 2.0], [0.5, 0.0, 3.0]])
+    assert colours.tolist() == [[0, 255, 0], [255, 0, 0]]
+
+
+# --- rotations and augmentation ---------------------------------------------------------
+
+def test_rotation_bins_round_trip():
+    rng = np.random.default_rng(0)
+    bins = np.stack([rng.integers(0, 72, 500), rng.integers(19, 54, 500), rng.integers(0, 72, 500)], -1)
+    assert np.array_equal(rotations.quat_to_bins(rotations.bins_to_quat(bins)), bins)
+    quat = rotations.euler_to_quat(rng.uniform([-math.pi, -1.4, -math.pi], [math.pi, 1.4, math.pi], (500, 3)))
+    error = rotations.angle_between(rotations.bins_to_quat(rotations.quat_to_bins(quat)), quat)
+    assert np.degrees(error).max() <= 3 * 2.5 + 1e-6      # at most half a bin per axis, composed
+    assert np.degrees(error).mean() < 3.0
+
+
+def test_yaw_quat_is_a_world_frame_rotation():
+    quat = rotations.euler_to_quat([0.3, -0.7, 1.1])
+    turned = rotations.yaw_quat(quat, 0.4)
+    rz = np.array([[math.cos(0.4), -math.sin(0.4), 0], [math.sin(0.4), math.cos(0.4), 0], [0, 0, 1]])
+    assert np.allclose(quat_to_matrix(turned), rz @ quat_to_matrix(quat))
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_augmentation_keeps_target_and_orientation_on_the_points(seed):
+    rng = np.random.default_rng(seed)
+    target = np.array([0.55, 0.1, 0.95])
+    quat = rotations.euler_to_quat([2.4, 0.6, -1.2])          # a pitched grasp
+    axes = quat_to_matrix(quat)
+    # Markers at the target and 5 cm along the hand's x and z axes, among other points.
+    markers = np.stack([target, target + 0.05 * axes[:, 0], target + 0.05 * axes[:, 2]])
+    cloud = np.concatenate([markers, rng.uniform(WORKSPACE[0], WORKSPACE[1], (50, 3))]).astype(np.float32)
+    moved, new_target, new_quat = augment(cloud, target, quat, rng)
+    new_axes = quat_to_matrix(new_quat)
+    assert np.allclose(moved[0], new_target, atol=1e-5)
+    assert np.allclose(moved[1], new_target + 0.05 * new_axes[:, 0], atol=1e-5)
+    assert np.allclose(moved[2], new_target + 0.05 * new_axes[:, 2], atol=1e-5)
+    assert np.allclose(moved[:, 2] - cloud[:, 2], moved[0, 2] - cloud[0, 2], atol=1e-5)   # only a yaw
+    assert np.all(new_target > WORKSPACE[0]) and np.all(new_target < WORKSPACE[1])
+
+
+# --- training, checkpoints, agent --------------------------------------------------------
+
+def test_a_few_steps_reduce_the_loss():
+    rng = np.random.default_rng(0)
+    dataset = KeyframeDataset([synthetic_episode(rng, 'open_drawer'), synthetic_episode(rng, 'pick_up_cup')])
+    model = tiny_model()
+    optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    items = [dataset.item(i, rng) for i in range(len(dataset))]
+    batch = training_batch(items, model.config, np.random.default_rng(1))
+    history = []
+    for _ in range(40):
+        loss = losses(model, batch)['total']
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append(loss.item())
+    assert history[-1] < 0.6 * history[0]
+
+
+def test_checkpoint_round_trip_and_refusals(tmp_path):
+    model = tiny_model().eval()
+    path = tmp_path / 'agent.pt'
+    checkpoint.save(path, model, torch.optim.AdamW(model.parameters()), 7, {'seed': 0}, {})
+    raw = torch.load(path, weights_only=True)
+    assert raw['step'] == 7 and raw['config']['model']['channels'] == [4, 8, 8]
+    loaded, stored = checkpoint.load_model(path)
+    assert stored['step'] == 7
+    for key, value in model.state_dict().items():
+        assert torch.equal(value, loaded.state_dict()[key])
+
+    truncated = tmp_path / 'truncated.pt'
+    truncated.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(checkpoint.CheckpointError, match='not a readable checkpoint'):
+        checkpoint.load(truncated)
+    raw['config']['model']['channels'] = [4, 8, 16]
+    torch.save(raw, tmp_path / 'mismatch.pt')
+    with pytest.raises(checkpoint.CheckpointError, match='do not match'):
+        checkpoint.load_model(tmp_path / 'mismatch.pt')
+    torch.save({'weights': torch.zeros(3)}, tmp_path / 'other.pt')
+    with pytest.raises(checkpoint.CheckpointError, match='is not a'):
+        checkpoint.load(tmp_path / 'other.pt')
+
+
+def test_agent_predicts_a_pose_from_camera_frames(tmp_path):
+    path = tmp_path / 'agent.pt'
+    checkpoint.save(path, tiny_model(), None, 0, {}, {})
+    agent = NextBestPoseAgent.from_checkpoint(path)
+    intrinsics = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    looking_down = np.eye(4)
+    looking_down[:3, :3] = np.diag([1.0, -1.0, -1.0])            # optical z pointing down
+    looking_down[:3, 3] = (0.5, 0.0, 1.6)
+    depth = np.full((48, 64), 700, np.uint16)                   # mm: a surface 0.9 m above the floor
+    rgb = np.full((48, 64, 3), 128, np.uint8)
+    pose = agent.predict({'front': (rgb, depth)}, {'front': intrinsics}, {'front': looking_down},
+                         'open the top drawer', (np.zeros(7), True))
+    assert pose.xyz.shape == (3,) and np.all(pose.xyz >= WORKSPACE[0] - 0.2) and np.all(pose.xyz <= WORKSPACE[1] + 0.2)
+    assert pose.quat.shape == (4,) and math.isclose(np.linalg.norm(pose.quat), 1.0, abs_tol=1e-6)
+    assert isinstance(pose.gripper_open, bool) and 0 < pose.confidence <= 1
+
+
+def test_proprio_vector_scales_to_the_joint_limits():
+    from hdp_msgs_py import panda
+    assert np.allclose(proprio_vector(panda.LOWER, False), [-1] * 8)
+    assert np.allclose(proprio_vector(panda.UPPER, True), [1] * 8)
+
+
+@pytest.mark.parametrize('command', [['train', 'high-level'], ['eval', 'high-level-offline']])
+def test_cli_help(command):
+    result = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', *command, '--help'],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert '--data' in result.stdout
