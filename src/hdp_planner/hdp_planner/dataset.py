@@ -6,7 +6,11 @@ where a recording has them, are PerAct's demo augmentation for free). Its
 target is the first keyframe after it: the end-effector pose (PyBullet
 forward kinematics of panda_grasptarget, world frame) and the commanded
 gripper state there. A frame within KEYFRAME_SNAP of a keyframe shows that
-keyframe's rest, so it targets the one after.
+keyframe's rest, so it targets the one after. A keyframe that asks for
+nothing (the hand already there, within NO_OP_DISTANCE and NO_OP_ANGLE, and
+the gripper as it is) is skipped: those come from the expert stalling
+against a hinge, and a high level that learnt to predict them would stall
+the hierarchy in place.
 
 Decoding bags is slow, so each episode's samples (workspace points and
 colours, proprio, targets) are cached as one npz under the cache directory,
@@ -30,8 +34,10 @@ from . import language, rotations
 from .model import proprio_vector
 from .voxels import scene_points
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 KEYFRAME_SNAP = 0.02          # s
+NO_OP_DISTANCE = 0.01         # m
+NO_OP_ANGLE = math.radians(5)
 FRAME_PAIRING = 0.05          # s: a camera's frame this close counts as the same moment
 WORLD_FRAME = 'world'
 
@@ -118,16 +124,23 @@ def episode_samples(episode, kinematics: PandaKinematics) -> dict:
     plus task, variation and seed."""
     js = episode.joint_states
     keyframes = np.array(episode.keyframes(), dtype=np.int64)
+    keyframe_xyz, keyframe_quat = kinematics.ee_pose(js.position[keyframes])
     intrinsics, to_world = camera_geometry(episode)
     clouds, state, target = [], [], []
     for t, frame in camera_frames(episode):
-        later = keyframes[js.t[keyframes] > t + KEYFRAME_SNAP]
+        now = max(int(np.searchsorted(js.t, t, side='right')) - 1, 0)      # the state the frame shows
+        xyz, quat = kinematics.ee_pose(js.position[now][None])
+        acts = ((np.linalg.norm(keyframe_xyz - xyz, axis=1) > NO_OP_DISTANCE)
+                | (rotations.angle_between(keyframe_quat, quat) > NO_OP_ANGLE)
+                | (js.gripper_open[keyframes] != js.gripper_open[now]))
+        later = np.flatnonzero((js.t[keyframes] > t + KEYFRAME_SNAP) & acts)
         if not len(later):
             continue
         clouds.append(scene_points(frame, intrinsics, to_world))
-        state.append(max(int(np.searchsorted(js.t, t, side='right')) - 1, 0))   # the state the frame shows
+        state.append(now)
         target.append(later[0])
-    target_xyz, target_quat = kinematics.ee_pose(js.position[target])
+    target_xyz, target_quat = keyframe_xyz[target].reshape(-1, 3), keyframe_quat[target].reshape(-1, 4)
+    target = keyframes[target]
     return {
         'xyz': np.concatenate([c[0] for c in clouds]).reshape(-1, 3).astype(np.float32),
         'rgb': np.concatenate([c[1] for c in clouds]).reshape(-1, 3).astype(np.uint8),
