@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hdp_controller.baselines import PlannerPolicy, PoseIKPolicy
-from hdp_controller.evaluation import evaluate, markdown_table, oracle_episode, run_episode
+from hdp_controller.evaluation import distinct_nbps, evaluate, markdown_table, oracle_episode, run_episode
 from hdp_controller.low_level import HORIZON, PlanResult
 from hdp_controller.observation import front_camera, front_points, points_from_messages, segment_request
 from hdp_msgs_py import conversions, workspace
@@ -121,12 +121,22 @@ def test_oracle_nbps_are_the_keyframes_of_the_recorded_demo(world, tmp_path):
     summary = record_episode(world, 'open_drawer', 7, tmp_path, width=32, height=24)
     episode = read_episode(summary.path)
     keyframes = episode.keyframes()
+    recorded = [(np.concatenate(motion.ee_pose(world.client_id, world.robot, episode.joint_states.position[k])),
+                 bool(episode.joint_states.gripper_open[k])) for k in keyframes]
     oracle = oracle_episode('open_drawer', 7, world)
-    assert len(oracle.nbps) == len(keyframes) >= 3
-    for (pose, gripper_open), k in zip(oracle.nbps, keyframes):
-        xyz, _ = motion.ee_pose(world.client_id, world.robot, episode.joint_states.position[k])
-        np.testing.assert_allclose(pose[:3], xyz, atol=1e-6)
-        assert gripper_open == bool(episode.joint_states.gripper_open[k])
+    expected = distinct_nbps(recorded)
+    assert len(oracle.nbps) == len(expected) >= 3
+    for (pose, gripper_open), (xyz_quat, recorded_open) in zip(oracle.nbps, expected):
+        np.testing.assert_allclose(pose[:3], xyz_quat[:3], atol=1e-6)
+        assert gripper_open == recorded_open
+
+
+def test_repeated_nbps_are_merged():
+    pose = np.array([0.5, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+    nudged = pose + np.array([0.001, 0, 0, 0, 0, 0, 0])
+    moved = pose + np.array([0.05, 0, 0, 0, 0, 0, 0])
+    nbps = [(pose, True), (nudged, True), (nudged, False), (moved, False), (moved, False)]
+    assert [(p[0], o) for p, o in distinct_nbps(nbps)] == [(0.5, True), (0.501, False), (0.55, False)]
 
 
 @pytest.mark.parametrize('task', ['reach_target', 'open_drawer'])

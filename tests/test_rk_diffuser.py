@@ -251,7 +251,9 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     assert first.returncode == 0, first.stderr
     assert checkpoint.read(out)['training']['step'] == 2
     again = subprocess.run([*base, '--steps', '2'], text=True, capture_output=True, timeout=300)
-    assert again.returncode != 0 and 'another configuration' in again.stderr
+    assert again.returncode == 0 and 'resuming from' in again.stdout
+    other = subprocess.run([*base, '--steps', '4'], text=True, capture_output=True, timeout=300)
+    assert other.returncode != 0 and 'another configuration' in other.stderr
     (tmp_path / 'rkd.pt.resume').unlink()
     fresh = subprocess.run([*base, '--steps', '4'], text=True, capture_output=True, timeout=300)
     assert fresh.returncode == 0 and checkpoint.read(out)['training']['step'] == 4

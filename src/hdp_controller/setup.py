@@ -13,12 +13,14 @@ setup(
     install_requires=[
         'setuptools',
         'hdp_msgs_py',
+        'hdp_sim_bridge',
         'numpy',
         'pyyaml',
         'tqdm',
         'torch',
         'pytorch-kinematics',
         'diffusers',
+        'matplotlib',
         'ompl',
     ],
     extras_require={'test': ['pytest']},
@@ -34,6 +36,8 @@ setup(
         'hdp.commands': [
             'eval.low-level = hdp_controller.eval_cli:configure',
             'train.low-level = hdp_controller.cli:configure_train',
+            'bench.controller = hdp_controller.bench:configure',
+            'plot.low-level = hdp_controller.figures:configure',
         ],
     },
 )

@@ -43,6 +43,9 @@ from .observation import points_from_messages
 
 CACHE_VERSION = 1
 MAX_AUGMENT = 5              # k ~ U{0..MAX_AUGMENT} waypoints at each end
+# Pushing against a hinge, the arm can stop several times at one pose and the
+# keyframe rule marks each stop: such segments carry no motion to learn.
+MIN_TRAVEL = 0.01            # rad of joint-space arc length
 
 
 @dataclasses.dataclass
@@ -64,6 +67,14 @@ class Segments:
 
     def __len__(self) -> int:
         return len(self.joints)
+
+    def select(self, mask: np.ndarray) -> Segments:
+        return Segments(**{f.name: getattr(self, f.name)[mask] for f in dataclasses.fields(self)})
+
+    def moving(self, min_travel: float = MIN_TRAVEL) -> Segments:
+        """The segments whose joints travel at least ``min_travel`` rad (joint-space arc length)."""
+        travel = np.linalg.norm(np.diff(self.joints, axis=1), axis=2).sum(axis=1)
+        return self.select(travel >= min_travel)
 
     def training_seeds(self) -> dict[str, list[int]]:
         return {str(t): sorted({int(s) for s in self.seed[self.task == t]}) for t in np.unique(self.task)}

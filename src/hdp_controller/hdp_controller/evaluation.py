@@ -104,8 +104,21 @@ def oracle_episode(task_name: str, seed: int, world: PandaWorld | None = None) -
     if result.success:
         stamps, velocities, poses = (np.array(column) for column in zip(*frames))
         gripper_open = _commanded_open(stamps, commands)
-        nbps = [(poses[k], bool(gripper_open[k])) for k in discover_keyframes(velocities, gripper_open)]
+        nbps = distinct_nbps([(poses[k], bool(gripper_open[k])) for k in discover_keyframes(velocities, gripper_open)])
     return OracleEpisode(task_name, seed, variation, instruction, result.success, result.reason, nbps)
+
+
+def distinct_nbps(nbps: list, position_tol: float = 0.002, angle_tol: float = np.radians(2.0)) -> list:
+    """Drop each NBP equal to the one before it (pose within the tolerances, same gripper
+    action): pushing against a hinge the arm stops several times at one pose, the keyframe
+    rule marks every stop, and such a segment asks for no motion at all."""
+    kept = []
+    for pose, is_open in nbps:
+        if kept and kept[-1][1] == is_open and np.linalg.norm(pose[:3] - kept[-1][0][:3]) < position_tol and \
+                2 * np.arccos(min(1.0, abs(float(np.dot(pose[3:], kept[-1][0][3:]))))) < angle_tol:
+            continue
+        kept.append((pose, is_open))
+    return kept
 
 
 # --- one episode --------------------------------------------------------------------------

@@ -34,7 +34,7 @@ def _quiet_urdf_parser():
 
 
 @functools.lru_cache(maxsize=None)
-def _chain(dtype: torch.dtype, device: str) -> pk.SerialChain:
+def panda_chain(dtype: torch.dtype, device: str) -> pk.SerialChain:
     with open(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'), 'rb') as f:
         urdf = f.read()
     with _quiet_urdf_parser():
@@ -47,7 +47,7 @@ def forward_kinematics(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
     Returns (position (..., 3) m, rotation matrix (..., 3, 3)); differentiable in q.
     """
-    chain = _chain(q.dtype, str(q.device))
+    chain = panda_chain(q.dtype, str(q.device))
     matrix = chain.forward_kinematics(q.reshape(-1, 7)).get_matrix()
     position = matrix[:, :3, 3] + torch.tensor(ROBOT_BASE, dtype=q.dtype, device=q.device)
     return position.reshape(*q.shape[:-1], 3), matrix[:, :3, :3].reshape(*q.shape[:-1], 3, 3)

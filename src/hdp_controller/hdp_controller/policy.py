@@ -24,8 +24,10 @@ from .rk_diffuser import RKDiffuser, as_batch
 
 METHODS = ('rkd', 'planner', 'pose_ik', 'joint')
 DEFAULT_CHECKPOINT_NAME = 'rk_diffuser.pt'
-# The fast sampler: DDIM over this many of the 100 training steps.
+# The fast sampler: DDIM over this many of the 100 training steps, with a
+# shorter gradient phase of the refinement (its Gauss-Newton steps stay).
 FAST_STEPS = 10
+FAST_REFINE_STEPS = 10
 
 
 def default_checkpoint() -> Path:
@@ -49,22 +51,32 @@ def conditions(request: SegmentRequest) -> dict:
 
 
 class _Sampling:
-    """Shared by the learned policies: the model, the sampler and a seeded generator."""
+    """Shared by the learned policies: the model, the sampler, and seeded noise (call n of a
+    policy built with seed s draws from seed s + n, so runs repeat; picklable for workers)."""
 
     def __init__(self, model: RKDiffuser, sampler: str = 'ddpm', steps: int | None = None, seed: int = 0,
                  training_seeds: dict | None = None):
         self.model, self.sampler, self.steps = model, sampler, steps
-        self.generator = torch.Generator().manual_seed(seed)
+        self.seed, self.calls = seed, 0
         self.training_seeds = training_seeds
 
     def _sample(self, request: SegmentRequest, which) -> dict:
-        return self.model.sample(conditions(request), self.sampler, self.steps, generator=self.generator, which=which)
+        generator = torch.Generator().manual_seed(self.seed + self.calls)
+        self.calls += 1
+        return self.model.sample(conditions(request), self.sampler, self.steps, generator=generator, which=which)
+
+
+class PoseSampler(_Sampling):
+    """The pose diffuser alone, as PoseIKPolicy's pose_sampler."""
+
+    def __call__(self, request: SegmentRequest) -> np.ndarray:
+        return self._sample(request, ('pose',))['poses'][0].numpy()
 
 
 class RKDPolicy(_Sampling):
     name = 'rkd'
 
-    def __init__(self, *args, refine_steps: int = 100, **kwargs):
+    def __init__(self, *args, refine_steps: int = 50, **kwargs):
         super().__init__(*args, **kwargs)
         self.refine_steps = refine_steps
 
@@ -104,10 +116,7 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
     steps = steps or (FAST_STEPS if sampler == 'ddim' else None)
     common = dict(sampler=sampler, steps=steps, seed=seed, training_seeds=payload.get('training_seeds'))
     if method == 'rkd':
-        return RKDPolicy(model, **common)
+        return RKDPolicy(model, refine_steps=FAST_REFINE_STEPS if sampler == 'ddim' else 50, **common)
     if method == 'joint':
         return JointDiffusionPolicy(model, **common)
-    sampling = _Sampling(model, **common)
-    policy = PoseIKPolicy(lambda request: sampling._sample(request, ('pose',))['poses'][0].numpy())
-    policy.training_seeds = sampling.training_seeds
-    return policy
+    return PoseIKPolicy(PoseSampler(model, **common), training_seeds=common['training_seeds'])

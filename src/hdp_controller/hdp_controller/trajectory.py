@@ -1,0 +1,49 @@
+"""Joint waypoints -> a JointTrajectory the arm can execute.
+
+What controller_node publishes and what the controller benchmark times: the
+arm's current joints first, then the policy's waypoints, timed with a
+trapezoidal profile inside the Panda's velocity limits (and a gentle
+acceleration), and checked against the joint position limits so that no
+trajectory outside them is ever handed to a controller.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hdp_msgs_py import panda
+from hdp_msgs_py.conversions import build_joint_trajectory
+from hdp_sim_bridge.motion import time_parameterize
+
+# Fraction of the velocity limits a generated trajectory may use.
+VELOCITY_SCALE = 0.5
+_LIMIT_TOLERANCE = 1e-6     # rad
+
+
+class TrajectoryError(ValueError):
+    pass
+
+
+def timed_waypoints(q_current, joints, velocity_scale: float = VELOCITY_SCALE) -> tuple[np.ndarray, np.ndarray]:
+    """(positions (K + 1, 7) from q_current, times_from_start (K + 1,) s).
+
+    Raises TrajectoryError for non-finite or out-of-limit waypoints.
+    """
+    path = np.vstack([np.asarray(q_current, dtype=float), np.asarray(joints, dtype=float)])
+    if path.ndim != 2 or path.shape[1] != 7 or not np.all(np.isfinite(path)):
+        raise TrajectoryError(f'joint waypoints must be finite (K, 7), got shape {path.shape}')
+    if not panda.within_limits(path[1:], tol=_LIMIT_TOLERANCE):
+        worst = np.max(np.maximum(panda.LOWER - path[1:], path[1:] - panda.UPPER))
+        raise TrajectoryError(f'a waypoint is {worst:.4f} rad outside the joint position limits')
+    return path, time_parameterize(path, velocity_scale=velocity_scale)
+
+
+def joint_trajectory(q_current, joints, joint_names=panda.ARM_JOINTS, velocity_scale: float = VELOCITY_SCALE,
+                     stamp=None):
+    """trajectory_msgs/JointTrajectory through ``joints`` (K, 7) from ``q_current`` (7,)."""
+    positions, times = timed_waypoints(q_current, joints, velocity_scale)
+    velocities = np.gradient(positions, times, axis=0)
+    velocities[[0, -1]] = 0.0
+    limit = panda.VELOCITY_LIMITS * velocity_scale
+    velocities = np.clip(velocities, -limit, limit)
+    return build_joint_trajectory(joint_names, positions, times, velocities, stamp=stamp)
