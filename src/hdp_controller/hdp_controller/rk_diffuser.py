@@ -3,7 +3,8 @@
 Conditions C = {start pose, goal pose (the NBP), low-dim state (joint
 positions and velocities, gripper width and open state), front-camera
 points, trajectory rank}. The pose diffuser generates the (T, 7) EE pose
-trajectory with start and goal inpainted; the joint diffuser generates the
+trajectory with start and goal inpainted (as its deviation from the straight
+line between them); the joint diffuser generates the
 (T, 7) joint trajectory with the start joints inpainted; one encoder embeds
 the conditions for both (the paper gives them the same C). Training distils
 the pose diffuser's accuracy into the joint diffuser through differentiable
@@ -78,9 +79,27 @@ def normalize_poses(pose: torch.Tensor) -> torch.Tensor:
     return torch.cat([normalize_positions(pose[..., :3]), pose[..., 3:]], dim=-1)
 
 
-def unnormalize_poses(pose: torch.Tensor) -> torch.Tensor:
-    quat = nn.functional.normalize(pose[..., 3:], dim=-1)
-    return torch.cat([unnormalize_positions(pose[..., :3]), quat], dim=-1)
+# The pose diffuser works on the deviation from the straight line start -> goal
+# (both known: they are inpainted), in units of these scales. Straight moves
+# (approaches, drawer pulls) are then the zero trajectory, and the network's
+# capacity goes to the curves (hinge arcs, detours around obstacles).
+_DEVIATION_SCALE = torch.tensor([0.1, 0.1, 0.1, 0.2, 0.2, 0.2, 0.2])     # m, m, m, quaternion units
+
+
+def _straight_line(start: torch.Tensor, goal: torch.Tensor, horizon: int) -> torch.Tensor:
+    """(B, 7) start and goal -> (B, horizon, 7) linear interpolation (quaternions not renormalised)."""
+    s = torch.linspace(0, 1, horizon, dtype=start.dtype, device=start.device)[None, :, None]
+    return start[:, None] + s * (goal - start)[:, None]
+
+
+def pose_deviation(poses: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """(B, T, 7) poses -> their scaled deviation from the straight line; zero at both ends."""
+    return (poses - _straight_line(start, goal, poses.shape[1])) / _DEVIATION_SCALE.to(poses)
+
+
+def poses_from_deviation(deviation: torch.Tensor, start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    poses = deviation * _DEVIATION_SCALE.to(deviation) + _straight_line(start, goal, deviation.shape[1])
+    return torch.cat([poses[..., :3], nn.functional.normalize(poses[..., 3:], dim=-1)], dim=-1)
 
 
 def normalize_joints(q: torch.Tensor) -> torch.Tensor:
@@ -147,8 +166,9 @@ class RKDiffuser(nn.Module):
         """batch: see dataset.SegmentDataset (unnormalised). Returns (total, {name: value})."""
         b = batch['q'].shape[0]
         cond = self.encoder(batch, torch.rand(b, device=batch['q'].device) < self.config.cond_dropout)
-        poses, joints = normalize_poses(batch['poses']), normalize_joints(batch['joints'])
-        l_pose, _ = self.pose.loss(poses, cond, {0: poses[:, 0], -1: poses[:, -1]})
+        deviation = pose_deviation(batch['poses'], batch['start_pose'], batch['goal_pose'])
+        joints = normalize_joints(batch['joints'])
+        l_pose, _ = self.pose.loss(deviation, cond, {0: deviation[:, 0], -1: deviation[:, -1]})
         l_joint, joints_hat = self.joint.loss(joints, cond, {0: joints[:, 0]})
         l_fk = fk_pose_loss(unnormalize_joints(joints_hat), batch['poses'])
         b1, b2, b3 = self.config.loss_weights
@@ -165,8 +185,9 @@ class RKDiffuser(nn.Module):
         null = self.encoder(batch, torch.ones(b, dtype=torch.bool)) if guidance != 1.0 else None
         out = {}
         if 'pose' in which:
-            known = {0: normalize_poses(batch['start_pose']), -1: normalize_poses(batch['goal_pose'])}
-            out['poses'] = unnormalize_poses(self.pose.sample(cond, known, null, guidance, sampler, steps, generator))
+            zero = torch.zeros_like(batch['start_pose'])
+            deviation = self.pose.sample(cond, {0: zero, -1: zero}, null, guidance, sampler, steps, generator)
+            out['poses'] = poses_from_deviation(deviation, batch['start_pose'], batch['goal_pose'])
         if 'joint' in which:
             known = {0: normalize_joints(batch['q'])}
             joints = unnormalize_joints(self.joint.sample(cond, known, null, guidance, sampler, steps, generator))
