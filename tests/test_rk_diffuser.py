@@ -260,3 +260,55 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     bad = subprocess.run([*HDP, 'train', 'low-level', '--data', str(tmp_path), '--out', str(out)],
                          text=True, capture_output=True, timeout=120)
     assert bad.returncode != 0 and 'no successful episodes' in bad.stderr
+
+
+# --- policies, trajectories, figures --------------------------------------------------------
+
+def _request(q=panda.HOME):
+    from hdp_controller.kinematics import fk_pose as fk
+    start = fk(torch.tensor(q, dtype=torch.float32)).numpy()
+    goal = fk(torch.tensor(np.asarray(q) + [0.2, 0.1, 0.0, 0.2, 0.0, -0.1, 0.3], dtype=torch.float32)).numpy()
+    return SegmentRequest(q=np.asarray(q), qd=np.zeros(7), gripper_width=0.08, gripper_open=True, start_pose=start,
+                          goal_pose=goal, points=np.random.default_rng(0).uniform([0.3, -0.2, 0.8], [0.6, 0.2, 1.0],
+                                                                                  (64, 3)))
+
+
+def test_learned_policies_from_a_checkpoint(tmp_path):
+    from hdp_controller.policy import load_policy
+    path = tmp_path / 'small.pt'
+    checkpoint.save(path, RKDiffuser(SMALL), {'training_seeds': {'reach_target': [0]}})
+    request = _request()
+    rkd = load_policy('rkd', path, 'ddim', steps=2)
+    plan = rkd.plan(request)
+    # Untrained, yet the refinement lands the last waypoint on the NBP, inside the limits.
+    assert plan.ok and plan.joints.shape == (HORIZON, 7) and np.allclose(plan.joints[0], request.q, atol=1e-5)
+    assert plan.extras['goal_error_m'] < 2e-3 and panda.within_limits(plan.joints)
+    assert rkd.training_seeds == {'reach_target': [0]}
+    joint = load_policy('joint', path, 'ddim', steps=2).plan(request)
+    assert joint.ok and panda.within_limits(joint.joints)
+    with pytest.raises(ValueError, match='unknown low-level method'):
+        load_policy('magic', path)
+
+
+def test_joint_trajectory_is_timed_within_limits_and_refuses_bad_waypoints():
+    from hdp_controller.trajectory import TrajectoryError, joint_trajectory
+    from hdp_msgs_py.conversions import parse_joint_trajectory
+    path = np.linspace(panda.HOME, panda.HOME + 0.5, 20)
+    names, positions, times, velocities = parse_joint_trajectory(joint_trajectory(panda.HOME, path))
+    assert list(names) == list(panda.ARM_JOINTS) and np.allclose(positions[0], panda.HOME)
+    speed = np.abs(np.diff(positions, axis=0)) / np.diff(times)[:, None]
+    assert np.all(speed <= panda.VELOCITY_LIMITS + 1e-6) and np.all(np.abs(velocities) <= panda.VELOCITY_LIMITS)
+    beyond = path.copy()
+    beyond[-1, 3] = panda.UPPER[3] + 0.1
+    with pytest.raises(TrajectoryError, match='outside the joint position limits'):
+        joint_trajectory(panda.HOME, beyond)
+    with pytest.raises(TrajectoryError, match='finite'):
+        joint_trajectory(panda.HOME, np.full((3, 7), np.nan))
+
+
+def test_fig4_plot_writes_a_png(tmp_path):
+    from hdp_controller.figures import plot
+    line = np.linspace([0.4, 0.0, 1.0], [0.6, 0.1, 0.9], HORIZON)
+    segment = {'poses': line, 'joint_fk': line + 0.01, 'refined_fk': line, 'planner_fk': line[::4]}
+    plot(segment, 'test', tmp_path / 'fig.png')
+    assert (tmp_path / 'fig.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'

@@ -48,7 +48,7 @@ def segments_of_episode(policy, task_name: str, seed: int) -> list[dict]:
             experts.follow(world, task, np.vstack([world.joint_positions(), plan.joints]), experts.ExpertConfig(),
                            lambda: None, lambda: None, hold=0.0)
             if goal_open != request.gripper_open:
-                experts.actuate(world, task, 'open' if goal_open else 'close', lambda: None, lambda: None)
+                experts.actuate(world, task, 'open' if goal_open else 'close', lambda *_: None, lambda *_: None)
     return out
 
 

@@ -89,7 +89,7 @@ class RKDPolicy(_Sampling):
         return PlanResult(joints[0].numpy(), poses=out['poses'][0].numpy(), extras={
             'unrefined_joints': out['joints'][0].numpy(), 'sample_s': sampled - started,
             'refine_s': time.perf_counter() - sampled, 'goal_error_m': float(translation[0]),
-            'goal_error_deg': float(np.degrees(rotation[0]))})
+            'goal_error_deg': float(np.degrees(rotation[0].item()))})
 
 
 class JointDiffusionPolicy(_Sampling):
@@ -99,7 +99,7 @@ class JointDiffusionPolicy(_Sampling):
         joints = self._sample(request, ('joint',))['joints']
         translation, rotation = goal_error(joints, torch.as_tensor(conditions(request)['goal_pose']))
         return PlanResult(joints[0].numpy(), extras={'goal_error_m': float(translation[0]),
-                                                     'goal_error_deg': float(np.degrees(rotation[0]))})
+                                                     'goal_error_deg': float(np.degrees(rotation[0].item()))})
 
 
 def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps: int | None = None,
