@@ -38,6 +38,7 @@ setup(
             'collect = hdp_sim_bridge.cli:configure_collect',
             'render = hdp_sim_bridge.cli:configure_render',
             'bench.sim = hdp_sim_bridge.cli:configure_bench_sim',
+            'launch = hdp_sim_bridge.launch_cli:configure',
         ],
     },
 )

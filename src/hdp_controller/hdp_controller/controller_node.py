@@ -1,30 +1,101 @@
-"""controller_node: announces itself on /hdp/status.
+"""controller_node: each next-best pose -> a JointTrajectory for the arm, then the gripper, then a result.
 
-A placeholder in the graph: the RK-Diffuser policy is wired in by a later issue.
+The logic is controller_logic.SegmentController; this node wires it to topics and
+parameters. A 20 Hz timer advances the segment. Planning runs inside that timer
+callback: the executor is single-threaded, so messages wait in their readers meanwhile
+(the latest joint state and camera frames are all the node keeps), and the arm is at rest
+while a segment is planned, so there is nothing to react to until the trajectory is out.
 """
 
-from hdp_msgs_py import ros
-from hdp_msgs_py import topics
-from hdp_msgs_py.msg import String
+import sys
+
+from hdp_msgs_py import panda, ros, topics
+from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, String, TFMessage
+
+from .controller_logic import SegmentController
+from .policy import METHODS, load_policy
+from .trajectory import VELOCITY_SCALE
+
+_STEP_S = 0.05
+_CAMERA = 'front'              # RK-Diffuser sees the front camera only, as in training
+
+
+class StartupError(Exception):
+    """A parameter or checkpoint the node cannot run with."""
 
 
 class ControllerNode(ros.Node):
 
     def __init__(self):
         super().__init__('controller_node')
-        self._status = self.create_publisher(String, topics.STATUS, 10)
-        # One-shot: give subscribers a moment to match, announce, then cancel.
-        self._announce_timer = self.create_timer(0.5, self._announce)
+        self.declare_parameter('method', 'rkd')                 # rkd | planner | pose_ik | joint
+        self.declare_parameter('checkpoint', '')                # '' = models/rk_diffuser.pt
+        self.declare_parameter('sampler', 'ddim')               # ddim (10 steps) | ddpm (100)
+        self.declare_parameter('segment_timeout_s', 10.0)       # after the trajectory's end
+        self.declare_parameter('velocity_scale', VELOCITY_SCALE)  # of the Panda's velocity limits
+        self.declare_parameter('joint_prefix', 'panda')         # 'fr3' for an FR3
+        p = {name: self.get_parameter(name).value for name in (
+            'method', 'checkpoint', 'sampler', 'segment_timeout_s', 'velocity_scale', 'joint_prefix')}
+        if p['method'] not in METHODS:
+            raise StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
+        if not 0.0 < p['velocity_scale'] <= 1.0:
+            raise StartupError(f"parameter 'velocity_scale' must be in (0, 1], got {p['velocity_scale']}")
+        if not p['segment_timeout_s'] > 0.0:
+            raise StartupError(f"parameter 'segment_timeout_s' must be > 0, got {p['segment_timeout_s']}")
+        try:
+            policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'])
+        except ValueError as err:          # CheckpointError: missing, damaged or not ours
+            raise StartupError(f"cannot load the {p['method']} policy: {err}") from None
+        prefix = p['joint_prefix']
+        self.logic = SegmentController(
+            policy, needs_points=p['method'] != 'planner', velocity_scale=p['velocity_scale'],
+            segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
+            finger_joints=tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS))
 
-    def _announce(self):
-        self._announce_timer.cancel()
-        text = 'controller_node up'
-        self.get_logger().info(text)
-        self._status.publish(String(data=text))
+        self._status = self.create_publisher(String, topics.STATUS, 10)
+        self._publishers = {
+            'arm': self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS),
+            'gripper': self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS),
+            'result': self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS),
+        }
+        self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
+        self.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
+                                 lambda m: self._send(self.logic.on_gripper_goal(m)), topics.COMMAND_QOS)
+        self.create_subscription(JointState, topics.JOINT_STATES, self.logic.on_joint_state, topics.COMMAND_QOS)
+        self.create_subscription(Image, topics.depth_image(_CAMERA),
+                                 lambda m: setattr(self.logic, 'depth', m), topics.SENSOR_QOS)
+        self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
+                                 lambda m: setattr(self.logic, 'info', m), topics.SENSOR_QOS)
+        self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.LATCHED_QOS)
+        self.create_timer(_STEP_S, lambda: self._send(self.logic.step(self._now())))
+        sampler = f" ({p['sampler']} sampler)" if p['method'] != 'planner' else ''
+        self._say('info', f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']}")
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_nbp(self, msg):
+        self._send(self.logic.on_nbp(msg, self._now()))
+
+    def _send(self, outputs):
+        for kind, msg in outputs:
+            if kind in ('info', 'error'):
+                self._say(kind, msg)
+            else:
+                self._publishers[kind].publish(msg)
+
+    def _say(self, level: str, text: str):
+        getattr(self.get_logger(), level)(text)
+        self._status.publish(String(data=f'controller_node: {text}'))
 
 
 def main(args=None):
-    ros.run(ControllerNode, args)
+    try:
+        ros.run(ControllerNode, args)
+    except StartupError as err:
+        print(f'[ERROR] [controller_node]: {err}', file=sys.stderr)
+        ros.try_shutdown()
+        sys.exit(1)
 
 
 if __name__ == '__main__':

@@ -19,6 +19,16 @@ SIM_RESET = '/hdp/sim/reset'          # std_msgs/String JSON {"task", "seed", "v
 SIM_EPISODE = '/hdp/sim/episode'      # std_msgs/String JSON of the running episode (latched)
 SIM_SUCCESS = '/hdp/sim/success'      # std_msgs/Bool: the task's success condition, 2 Hz
 
+# Planner <-> controller, one segment at a time (see the hdp_planner and hdp_controller READMEs).
+# The NBP's header.stamp is the segment's key: its gripper goal carries the same stamp, and
+# the controller answers each NBP exactly once with it.
+NEXT_BEST_GRIPPER = '/hdp/next_best_gripper'   # sensor_msgs/JointState, see GRIPPER_GOAL_JOINT
+SEGMENT_RESULT = '/hdp/segment_result'         # std_msgs/Header: the NBP's stamp, frame_id the outcome
+GRIPPER_GOAL_JOINT = 'panda_gripper'           # the goal's one name; position 0.08 m open, 0.0 closed
+SEGMENT_DONE = 'done'                          # the arm arrived and the gripper acted
+SEGMENT_FAILED = 'failed: '                    # followed by the reason; nothing moved, or it stopped
+NBP_FRAME = 'world'                            # the only frame an NBP may be given in
+
 
 def color_image(camera: str) -> str:
     return f'/camera/{camera}/color/image_raw'

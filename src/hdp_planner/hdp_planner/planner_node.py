@@ -1,30 +1,101 @@
-"""planner_node: the high-level agent's place in the graph.
+"""planner_node: an instruction -> next-best poses for the controller, one segment at a time.
 
-For now it acknowledges each instruction on /hdp/status; the next-best-pose
-agent is wired in by a later issue.
+The logic is planner_logic.PlannerLoop; this node wires it to topics and parameters. A
+10 Hz timer advances the loop, and the agent predicts inside that callback (a few tens of
+milliseconds on a CPU core). Timeouts run on the node's clock: the graph's YAML keeps this
+node on wall time, so a dead simulator (whose /clock stops with it) is reported, not waited for.
 """
 
-from hdp_msgs_py import ros
-from hdp_msgs_py import topics
-from hdp_msgs_py.msg import String
+import functools
+import sys
+
+from hdp_msgs_py import panda, ros, topics
+from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, PoseStamped, String, TFMessage
+
+from .agent import NextBestPoseAgent
+from .planner_logic import Observations, PlannerLoop, default_checkpoint
+
+_STEP_S = 0.1
+
+
+class StartupError(Exception):
+    """A parameter or checkpoint the node cannot run with."""
 
 
 class PlannerNode(ros.Node):
 
     def __init__(self):
         super().__init__('planner_node')
-        self._status = self.create_publisher(String, topics.STATUS, 10)
-        self.create_subscription(String, topics.INSTRUCTION, self._on_instruction, 10)
+        self.declare_parameter('checkpoint', '')              # '' = models/hdp_nbp_agent.pt
+        self.declare_parameter('max_segments', 8)
+        self.declare_parameter('camera_timeout_s', 5.0)        # for fresh frames from both cameras
+        self.declare_parameter('result_timeout_s', 60.0)       # for the controller's segment result
+        self.declare_parameter('joint_prefix', 'panda')        # 'fr3' for an FR3
+        p = {name: self.get_parameter(name).value for name in (
+            'checkpoint', 'max_segments', 'camera_timeout_s', 'result_timeout_s', 'joint_prefix')}
+        if p['max_segments'] < 1:
+            raise StartupError(f"parameter 'max_segments' must be >= 1, got {p['max_segments']}")
+        for name in ('camera_timeout_s', 'result_timeout_s'):
+            if not p[name] > 0:
+                raise StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
+        checkpoint = p['checkpoint'] or default_checkpoint()
+        try:
+            agent = NextBestPoseAgent.from_checkpoint(checkpoint)
+        except ValueError as err:          # CheckpointError: missing, damaged or not ours
+            raise StartupError(f'cannot load the next-best-pose agent: {err}') from None
+        prefix = p['joint_prefix']
+        observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
+                                    tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS))
+        self.loop = PlannerLoop(agent, agent.model.config.vocabulary, p['max_segments'], p['camera_timeout_s'],
+                                p['result_timeout_s'], observations)
 
-    def _on_instruction(self, msg):
-        text = (f'planner_node: received instruction {msg.data!r}; '
-                'no high-level agent is wired yet')
-        self.get_logger().info(text)
-        self._status.publish(String(data=text))
+        self._status = self.create_publisher(String, topics.STATUS, 10)
+        self._publishers = {
+            'nbp': self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS),
+            'gripper_goal': self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS),
+        }
+        self.create_subscription(String, topics.INSTRUCTION,
+                                 lambda m: self._send(self.loop.on_instruction(m.data, self._now())), 10)
+        for camera in topics.CAMERAS:
+            for msg_type, topic, callback in (
+                    (Image, topics.color_image(camera), observations.on_color),
+                    (Image, topics.depth_image(camera), observations.on_depth),
+                    (CameraInfo, topics.camera_info(camera), observations.on_info)):
+                self.create_subscription(msg_type, topic, functools.partial(callback, camera), topics.SENSOR_QOS)
+        self.create_subscription(TFMessage, topics.TF_STATIC, observations.on_tf_static, topics.LATCHED_QOS)
+        self.create_subscription(JointState, topics.JOINT_STATES, observations.on_joint_state, topics.COMMAND_QOS)
+        self.create_subscription(Header, topics.SEGMENT_RESULT,
+                                 lambda m: self._send(self.loop.on_result(m, self._now())), topics.COMMAND_QOS)
+        self.create_subscription(Bool, topics.SIM_SUCCESS, lambda m: self.loop.on_success(m.data), 10)
+        self.create_timer(_STEP_S, self._step)
+        self._say('info', f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction')
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _step(self):
+        now = self.get_clock().now().nanoseconds
+        self._send(self.loop.step(now * 1e-9, now))
+
+    def _send(self, outputs):
+        for kind, msg in outputs:
+            if kind in ('info', 'error'):
+                self._say(kind, msg)
+            else:
+                self._publishers[kind].publish(msg)
+
+    def _say(self, level: str, text: str):
+        getattr(self.get_logger(), level)(text)
+        self._status.publish(String(data=f'planner_node: {text}'))
 
 
 def main(args=None):
-    ros.run(PlannerNode, args)
+    try:
+        ros.run(PlannerNode, args)
+    except StartupError as err:
+        print(f'[ERROR] [planner_node]: {err}', file=sys.stderr)
+        ros.try_shutdown()
+        sys.exit(1)
 
 
 if __name__ == '__main__':

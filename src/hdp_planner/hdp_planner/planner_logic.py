@@ -1,0 +1,274 @@
+"""What planner_node does between messages, without ROS: one instruction, segment after segment.
+
+    instruction -> validate -> [observe (fresh frames from both cameras) -> predict the NBP
+    -> send gripper goal + NBP -> wait for the controller's result] until success or
+    max_segments
+
+The protocol with the controller is in the package README: the NBP's header.stamp keys the
+segment; the gripper goal carries the same stamp; the controller answers on
+/hdp/segment_result with it. ``PlannerLoop`` returns what to publish as ``Out(kind, msg)``:
+'nbp' (PoseStamped), 'gripper_goal' (JointState), or a status line 'info' / 'error' (str).
+Times are seconds on the node's clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from hdp_msgs_py import conversions, panda, topics
+from hdp_msgs_py.msg import Header, JointState, Time
+
+from .language import words
+
+MAX_INSTRUCTION_CHARS = 256
+# Words every phrasing shares; an instruction made of these alone names no task.
+FILLER_WORDS = frozenset({'a', 'an', 'and', 'it', 'of', 'off', 'the', 'to', 'up', 'with'})
+DEFAULT_CHECKPOINT_NAME = 'hdp_nbp_agent.pt'
+
+
+def default_checkpoint() -> Path:
+    """$HDP_MODELS_DIR/hdp_nbp_agent.pt, else the repository's models/hdp_nbp_agent.pt."""
+    models = Path(os.environ.get('HDP_MODELS_DIR') or Path(__file__).resolve().parents[3] / 'models')
+    return models / DEFAULT_CHECKPOINT_NAME
+
+
+class InstructionRefused(ValueError):
+    """Why an instruction starts no motion."""
+
+
+def validate_instruction(text: str, vocabulary) -> str:
+    """The instruction stripped of surrounding space, or InstructionRefused: empty, longer than
+    MAX_INSTRUCTION_CHARS, or without a word of ``vocabulary`` beyond the filler words."""
+    stripped = text.strip()
+    if not stripped:
+        raise InstructionRefused('the instruction is empty')
+    if len(stripped) > MAX_INSTRUCTION_CHARS:
+        raise InstructionRefused(f'the instruction has {len(stripped)} characters, '
+                                 f'more than {MAX_INSTRUCTION_CHARS}')
+    content = set(vocabulary) - FILLER_WORDS
+    if not any(w in content for w in words(stripped)):
+        raise InstructionRefused(f'no word of {stripped!r} names anything the agent was trained on '
+                                 f'(words such as {", ".join(sorted(content)[:6])}, ...)')
+    return stripped
+
+
+class Out(NamedTuple):
+    kind: str                  # 'nbp' | 'gripper_goal' (msg is a message) | 'info' | 'error' (a str)
+    msg: object
+
+
+def stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+class Observations:
+    """The latest frames of each camera, the camera extrinsics and the joint state.
+
+    Frames count as fresh when stamped at or after a joint state seen earlier: both come
+    from the robot (or the sim), so no clock of this node is compared with theirs.
+    """
+
+    def __init__(self, cameras=topics.CAMERAS, arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS):
+        self.cameras = tuple(cameras)
+        self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
+        self.color: dict = {}
+        self.depth: dict = {}
+        self.info: dict = {}
+        self.transforms: dict = {}           # child frame -> TransformStamped, from /tf_static
+        self.joint_state = None
+
+    def on_color(self, camera: str, msg) -> None:
+        self.color[camera] = msg
+
+    def on_depth(self, camera: str, msg) -> None:
+        self.depth[camera] = msg
+
+    def on_info(self, camera: str, msg) -> None:
+        self.info[camera] = msg
+
+    def on_tf_static(self, msg) -> None:
+        self.transforms.update({t.child_frame_id: t for t in msg.transforms})
+
+    def on_joint_state(self, msg) -> None:
+        """Keep it if it has every arm and finger joint (a partial one is some other publisher's)."""
+        if set(self.arm_joints + self.finger_joints) <= set(msg.name):
+            self.joint_state = msg
+
+    def joint_stamp_ns(self) -> int:
+        return stamp_ns(self.joint_state.header.stamp) if self.joint_state is not None else 0
+
+    def missing(self, since_ns: int) -> list[str]:
+        """What is not there yet, e.g. ['front camera colour', 'side camera extrinsics']."""
+        missing = [] if self.joint_state is not None else ['/joint_states with every arm and finger joint']
+        for camera in self.cameras:
+            for what, frames in (('colour', self.color), ('depth', self.depth)):
+                if camera not in frames or stamp_ns(frames[camera].header.stamp) < since_ns:
+                    missing.append(f'{camera} camera {what}')
+            if camera not in self.info:
+                missing.append(f'{camera} camera_info')
+            elif self._extrinsics(camera) is None:
+                missing.append(f'{camera} camera extrinsics on /tf_static')
+        return missing
+
+    def _extrinsics(self, camera: str):
+        transform = self.transforms.get(self.info[camera].header.frame_id)
+        return transform if transform is not None and transform.header.frame_id == topics.NBP_FRAME else None
+
+    def arm(self) -> tuple[np.ndarray, float]:
+        """(joint positions (7,) rad, gripper width m) of the latest joint state."""
+        names = list(self.joint_state.name)
+        position = np.asarray(self.joint_state.position, dtype=float)
+        return (position[[names.index(n) for n in self.arm_joints]],
+                float(sum(position[names.index(n)] for n in self.finger_joints)))
+
+    def agent_inputs(self) -> tuple[dict, dict, dict]:
+        """(camera -> (rgb (H, W, 3) uint8, depth (H, W) uint16 mm), camera -> CameraInfo,
+        camera -> TransformStamped world -> optical frame), as NextBestPoseAgent.predict takes them."""
+        frames = {c: (conversions.image_to_numpy(self.color[c]), conversions.image_to_numpy(self.depth[c]))
+                  for c in self.cameras}
+        return frames, dict(self.info), {c: self._extrinsics(c) for c in self.cameras}
+
+
+@dataclasses.dataclass
+class Segment:
+    index: int                 # 1-based, within the instruction
+    stamp: Time                # the NBP's header.stamp: the key the result comes back with
+    xyz: np.ndarray            # (3,) m
+    gripper_open: bool
+    sent_s: float
+
+
+class PlannerLoop:
+    """One instruction at a time, as a state machine the node drives with step() and messages.
+
+    idle (no instruction) -> observing (waiting for fresh frames, then predicting) ->
+    waiting (a segment sent, its result due) -> observing ... -> idle. A new instruction
+    while observing replaces the running one; while waiting, it starts when the result
+    (or its timeout) comes. Every stop says why on /hdp/status.
+    """
+
+    def __init__(self, agent, vocabulary, max_segments: int = 8, camera_timeout_s: float = 5.0,
+                 result_timeout_s: float = 60.0, observations: Observations | None = None):
+        self.agent, self.vocabulary = agent, tuple(vocabulary)
+        self.max_segments = max_segments
+        self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s
+        self.observations = observations or Observations()
+        self.instruction: str | None = None
+        self.queued: str | None = None
+        self.segment: Segment | None = None       # sent, result not yet back
+        self.count = 0                            # segments sent for this instruction
+        self.deadline_s = 0.0
+        self.since_ns = 0
+        self.gripper_open: bool | None = None     # the last goal sent; None: not commanded yet
+        self.success_heard = False                # a robot without /hdp/sim/success never sets it
+        self.success: bool | None = None          # since the last segment ended; None: not yet heard
+        self._last_stamp_ns = 0
+
+    # -- messages -------------------------------------------------------------------------
+    def on_success(self, value: bool) -> None:
+        self.success_heard, self.success = True, bool(value)
+
+    def on_instruction(self, text: str, now_s: float) -> list[Out]:
+        try:
+            instruction = validate_instruction(text, self.vocabulary)
+        except InstructionRefused as err:
+            return [Out('error', f'refused instruction: {err}')]
+        if self.segment is not None:
+            self.queued = instruction
+            return [Out('info', f'instruction {instruction!r} queued: it starts when segment '
+                                f'{self.segment.index} ends')]
+        return self._begin(instruction, now_s)
+
+    def on_result(self, msg, now_s: float) -> list[Out]:
+        """A /hdp/segment_result (std_msgs/Header); results of other segments are ignored."""
+        segment = self.segment
+        if segment is None or stamp_ns(msg.stamp) != stamp_ns(segment.stamp):
+            return []
+        self.segment = None
+        x, y, z = segment.xyz
+        line = (f'segment {segment.index}: pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
+                f'{"open" if segment.gripper_open else "close"} -> {msg.frame_id} in {now_s - segment.sent_s:.1f} s')
+        if msg.frame_id != topics.SEGMENT_DONE:
+            return [Out('error', line)] + self._stop(f'segment {segment.index} failed', now_s)
+        self.gripper_open = segment.gripper_open
+        if self.queued is not None:
+            return [Out('info', line)] + self._stop('replaced by a new instruction', now_s, error=False)
+        self._observe(now_s)
+        return [Out('info', line)]
+
+    # -- the loop ------------------------------------------------------------------------------
+    def step(self, now_s: float, now_ns: int) -> list[Out]:
+        """Advance the loop; call it often (the node's timer). ``now_ns`` stamps a new NBP."""
+        if self.instruction is None:
+            return []
+        if self.segment is not None:
+            if now_s <= self.deadline_s:
+                return []
+            return [Out('error', f'segment {self.segment.index}: no result from the controller within '
+                                 f'{self.result_timeout_s:.1f} s (is controller_node running?)')] + self._stop(
+                'no segment result', now_s)
+        if self.success_heard and self.success:
+            return self._stop(f'task succeeded after {self.count} segments', now_s, error=False)
+        awaiting_success = self.success_heard and self.success is None
+        if self.count >= self.max_segments:
+            if awaiting_success and now_s <= self.deadline_s:
+                return []
+            outcome = 'without success' if self.success_heard else '(this robot reports no success)'
+            return self._stop(f'{self.max_segments} segments done {outcome}', now_s, error=self.success_heard)
+        waiting_for = self.observations.missing(self.since_ns) + ([topics.SIM_SUCCESS] if awaiting_success else [])
+        if waiting_for:
+            if now_s <= self.deadline_s:
+                return []
+            cameras = sorted({w.split()[0] for w in waiting_for if ' camera' in w})
+            subject = f'camera {", ".join(cameras)} ' if cameras else ''
+            return self._stop(f'{subject}timed out after {self.camera_timeout_s:.1f} s '
+                              f'(no fresh {", ".join(waiting_for)})', now_s)
+        return self._predict_and_send(now_s, now_ns)
+
+    def _predict_and_send(self, now_s: float, now_ns: int) -> list[Out]:
+        try:
+            q, width = self.observations.arm()
+            if self.gripper_open is None:
+                self.gripper_open = width >= panda.GRIPPER_OPEN_WIDTH - 0.005
+            nbp = self.agent.predict(*self.observations.agent_inputs(), self.instruction, (q, self.gripper_open))
+        except (ValueError, RuntimeError) as err:       # bad frames or joint states; torch shape errors
+            return self._stop(f'cannot predict a next-best pose: {err}', now_s)
+        self._last_stamp_ns = max(now_ns, self._last_stamp_ns + 1)     # distinct keys, even on a paused clock
+        stamp = Time(sec=self._last_stamp_ns // 1_000_000_000, nanosec=self._last_stamp_ns % 1_000_000_000)
+        self.count += 1
+        self.segment = Segment(self.count, stamp, np.asarray(nbp.xyz, dtype=float), bool(nbp.gripper_open), now_s)
+        self.deadline_s = now_s + self.result_timeout_s
+        x, y, z = nbp.xyz
+        goal = JointState(header=Header(stamp=stamp), name=[topics.GRIPPER_GOAL_JOINT],
+                          position=[panda.GRIPPER_OPEN_WIDTH if nbp.gripper_open else 0.0])
+        # The gripper goal first, so it is usually there when the NBP arrives.
+        return [Out('gripper_goal', goal),
+                Out('nbp', conversions.xyz_quat_to_pose_stamped(nbp.xyz, nbp.quat, topics.NBP_FRAME, stamp)),
+                Out('info', f'segment {self.count}: sent pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
+                            f'{"open" if nbp.gripper_open else "close"} (confidence {nbp.confidence:.2f})')]
+
+    def _begin(self, instruction: str, now_s: float) -> list[Out]:
+        replaced = self.instruction
+        self.instruction, self.count = instruction, 0
+        self._observe(now_s)
+        note = f' (replaces {replaced!r})' if replaced is not None else ''
+        return [Out('info', f'instruction {instruction!r}: up to {self.max_segments} segments{note}')]
+
+    def _observe(self, now_s: float) -> None:
+        """Wait for frames taken after now, and for a success report after now."""
+        self.since_ns = self.observations.joint_stamp_ns()
+        self.success = None
+        self.deadline_s = now_s + self.camera_timeout_s
+
+    def _stop(self, why: str, now_s: float, error: bool = True) -> list[Out]:
+        out = [Out('error' if error else 'info', f'instruction {self.instruction!r}: {why}')]
+        self.instruction, self.segment = None, None
+        if self.queued is not None:
+            queued, self.queued = self.queued, None
+            out += self._begin(queued, now_s)
+        return out

@@ -1,0 +1,385 @@
+"""controller_node: NBP validation, trajectories inside the limits, segment completion, and the
+node as a process next to sim_bridge_node (method 'planner', so no checkpoint is needed).
+
+Run as a script, this file is the probe the process test starts: `python test_controller_node.py probe`.
+"""
+
+import functools
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+import numpy as np
+import pytest
+import torch
+
+from hdp_msgs_py import conversions, panda, topics
+from hdp_msgs_py.msg import Header, JointState, Point, Pose, PoseStamped, Quaternion, TFMessage, Time
+
+torch.set_num_threads(1)
+
+@functools.cache
+def home_pose() -> np.ndarray:
+    """(7,) panda_grasptarget at panda.HOME, where the sim's arm starts."""
+    from hdp_controller import kinematics
+    return kinematics.fk_pose(torch.as_tensor(panda.HOME, dtype=torch.float64)).numpy()
+
+
+def reachable_goal() -> np.ndarray:
+    """10 cm forward, sideways and down from home, hand pointing down: above the table, in the workspace."""
+    goal = home_pose().copy()
+    goal[:3] += [0.1, 0.1, -0.1]
+    return goal
+
+
+def nbp(xyz, quat, stamp_sec: int = 1, frame_id: str = 'world'):
+    """A PoseStamped as given, unchecked (conversions.xyz_quat_to_pose_stamped refuses NaN)."""
+    x, y, z = map(float, xyz)
+    qx, qy, qz, qw = map(float, quat)
+    return PoseStamped(header=Header(stamp=Time(sec=stamp_sec), frame_id=frame_id), pose=Pose(
+        position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
+
+
+def gripper_goal_msg(is_open: bool, stamp_sec: int = 1, width=None):
+    width = (0.08 if is_open else 0.0) if width is None else width
+    return JointState(header=Header(stamp=Time(sec=stamp_sec)), name=[topics.GRIPPER_GOAL_JOINT], position=[width])
+
+
+def joint_state_msg(q, qd=None, fingers=(0.04, 0.04)):
+    return JointState(name=list(panda.ARM_JOINTS + panda.FINGER_JOINTS),
+                      position=[*map(float, q), *fingers],
+                      velocity=[*map(float, np.zeros(7) if qd is None else qd), 0.0, 0.0])
+
+
+# --- validation ---------------------------------------------------------------------------
+
+def test_a_valid_nbp_becomes_position_and_unit_quaternion():
+    from hdp_controller.controller_logic import validate_nbp
+    goal = reachable_goal()
+    pose = validate_nbp(nbp(goal[:3], goal[3:]))
+    assert pose.shape == (7,) and np.allclose(pose, goal, atol=1e-9)
+
+
+@pytest.mark.parametrize('xyz, quat, frame, reason', [
+    ((math.nan, 0.0, 1.0), (1, 0, 0, 0), 'world', 'position must be finite'),
+    ((0.4, 0.0, math.inf), (1, 0, 0, 0), 'world', 'position must be finite'),
+    ((0.4, 0.0, 1.0), (math.nan, 0, 0, 1), 'world', 'quaternion must be finite'),
+    ((0.4, 0.0, 1.0), (0.5, 0, 0, 0), 'world', 'quaternion must be unit'),
+    ((0.4, 0.0, 1.0), (1.0, 0, 0, 0.1), 'world', 'quaternion must be unit'),
+    ((0.4, 0.0, 1.0), (0, 0, 0, 0), 'world', 'zero norm'),
+    ((1.5, 0.0, 1.0), (1, 0, 0, 0), 'world', 'outside the workspace'),
+    ((0.4, 0.0, 0.70), (1, 0, 0, 0), 'world', 'outside the workspace'),     # under the table top
+    ((0.4, 0.0, 1.0), (1, 0, 0, 0), 'panda_link0', "is not 'world'"),
+])
+def test_invalid_nbps_are_refused_with_the_reason(xyz, quat, frame, reason):
+    from hdp_controller.controller_logic import SegmentRefused, validate_nbp
+    with pytest.raises(SegmentRefused, match=reason):
+        validate_nbp(nbp(xyz, quat, frame_id=frame))
+
+
+def test_gripper_goals_are_validated():
+    from hdp_controller.controller_logic import gripper_goal
+    assert gripper_goal(gripper_goal_msg(True)) is True
+    assert gripper_goal(gripper_goal_msg(False)) is False
+    for bad in (gripper_goal_msg(True, width=0.2), gripper_goal_msg(True, width=math.nan),
+                JointState(name=['panda_finger_joint1'], position=[0.04]),
+                JointState(name=[topics.GRIPPER_GOAL_JOINT], position=[])):
+        with pytest.raises(ValueError):
+            gripper_goal(bad)
+
+
+def test_arm_state_reads_joints_by_name_in_any_order():
+    from hdp_controller.controller_logic import arm_state
+    q = panda.HOME + 0.1
+    msg = joint_state_msg(q, qd=np.arange(7) * 0.01, fingers=(0.01, 0.02))
+    msg.name, msg.position, msg.velocity = msg.name[::-1], msg.position[::-1], msg.velocity[::-1]
+    state = arm_state(msg, panda.ARM_JOINTS, panda.FINGER_JOINTS)
+    assert np.allclose(state.q, q) and np.allclose(state.qd, np.arange(7) * 0.01)
+    assert state.gripper_width == pytest.approx(0.03)
+    msg.name = [n.replace('panda_joint7', 'elbow') for n in msg.name]
+    with pytest.raises(ValueError, match='panda_joint7'):
+        arm_state(msg, panda.ARM_JOINTS, panda.FINGER_JOINTS)
+
+
+# --- trajectories -------------------------------------------------------------------------
+
+class FakePolicy:
+    """A LowLevelPolicy that returns the joints it was given (or fails)."""
+    name = 'fake'
+
+    def __init__(self, joints=None, failure=None):
+        self.joints, self.failure, self.requests = joints, failure, []
+
+    def plan(self, request, scene=None):
+        from hdp_controller.low_level import PlanResult
+        self.requests.append(request)
+        if self.failure:
+            return PlanResult(None, failure=self.failure)
+        return PlanResult(np.asarray(self.joints, dtype=float))
+
+
+def _request(q=panda.HOME):
+    from hdp_controller.controller_logic import ArmState, segment_request
+    return segment_request(ArmState(np.asarray(q, float), np.zeros(7), 0.08), True, reachable_goal(), False,
+                           np.zeros((0, 3), np.float32))
+
+
+def test_segment_request_starts_at_the_forward_kinematics_of_the_joints():
+    request = _request()
+    assert np.allclose(request.start_pose, home_pose())
+    assert request.gripper_open is True and request.goal_gripper_open is False
+
+
+def test_joint_trajectories_stay_inside_position_and_velocity_limits():
+    from hdp_controller.controller_logic import plan_segment
+    rng = np.random.default_rng(0)
+    for trial in range(20):
+        scale = rng.uniform(0.1, 1.0)
+        joints = rng.uniform(panda.LOWER, panda.UPPER, (int(rng.integers(1, 64)), 7))
+        msg, _ = plan_segment(FakePolicy(joints), _request(), panda.ARM_JOINTS, scale)
+        names, positions, times, velocities = conversions.parse_joint_trajectory(msg)
+        assert names == list(panda.ARM_JOINTS)
+        assert np.allclose(positions[0], panda.HOME) and times[0] == 0.0
+        assert panda.within_limits(positions, tol=1e-9)
+        implied = np.abs(np.diff(positions, axis=0)) / np.diff(times)[:, None]
+        assert np.all(implied <= panda.VELOCITY_LIMITS * scale * 1.001)
+        assert np.all(np.abs(velocities) <= panda.VELOCITY_LIMITS * scale + 1e-9)
+        assert np.all(velocities[-1] == 0.0)
+
+
+def test_out_of_limit_or_failed_plans_are_refused_never_sent():
+    from hdp_controller.controller_logic import SegmentRefused, plan_segment
+    beyond = np.vstack([panda.HOME, panda.UPPER + np.array([0, 0, 0, 0, 0, 0.01, 0])])
+    with pytest.raises(SegmentRefused, match='outside the joint position limits'):
+        plan_segment(FakePolicy(beyond), _request(), panda.ARM_JOINTS, 0.5)
+    with pytest.raises(SegmentRefused, match='finite'):
+        plan_segment(FakePolicy([[math.nan] * 7]), _request(), panda.ARM_JOINTS, 0.5)
+    with pytest.raises(SegmentRefused, match=r'fake found no trajectory \(no_path\)'):
+        plan_segment(FakePolicy(failure='no_path'), _request(), panda.ARM_JOINTS, 0.5)
+
+
+def test_planner_method_reaches_the_goal_pose_within_limits():
+    from hdp_controller import kinematics
+    from hdp_controller.baselines import PlannerPolicy
+    from hdp_controller.controller_logic import plan_segment
+    msg, _ = plan_segment(PlannerPolicy(), _request(), panda.ARM_JOINTS, 0.5)
+    _, positions, _, _ = conversions.parse_joint_trajectory(msg)
+    assert panda.within_limits(positions)
+    end = kinematics.fk_pose(torch.as_tensor(positions[-1])).numpy()
+    assert np.linalg.norm(end[:3] - reachable_goal()[:3]) < 0.01
+
+
+# --- segment completion ---------------------------------------------------------------------
+
+def _state(q, qd=None, width=0.08):
+    from hdp_controller.controller_logic import ArmState
+    return ArmState(np.asarray(q, float), np.zeros(7) if qd is None else np.asarray(qd, float), width)
+
+
+def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_settle():
+    from hdp_controller.controller_logic import SegmentExecution
+    goal = panda.HOME + 0.2
+    run = SegmentExecution(goal, duration_s=2.0, start_s=10.0, timeout_s=5.0, gripper_open=False)
+    assert run.update(11.0, _state(goal)) == (False, None)                    # before the trajectory's end
+    assert run.update(12.5, _state(goal + 0.05)) == (False, None)             # not there yet
+    assert run.update(12.6, _state(goal, qd=np.full(7, 0.1))) == (False, None)  # there, still moving
+    assert run.update(12.7, _state(goal + 0.005)) == (True, None)             # arrived: close the gripper
+    assert run.update(12.8, _state(goal, width=0.08)) == (False, None)
+    assert run.update(13.0, _state(goal, width=0.05)) == (False, None)        # closing
+    assert run.update(13.2, _state(goal, width=0.03)) == (False, None)        # stopped on an object ...
+    assert run.update(13.5, _state(goal, width=0.03)) == (False, 'done')      # ... for 0.2 s: done
+
+
+def test_segment_timeouts_and_no_gripper_action():
+    from hdp_controller.controller_logic import SegmentExecution
+    goal = panda.HOME + 0.2
+    stuck = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    assert stuck.update(2.9, _state(goal + 0.1)).result is None
+    result = stuck.update(3.1, _state(goal + 0.1)).result
+    assert result.startswith('failed: the arm did not settle') and '0.100 rad' in result
+    assert SegmentExecution(goal, 1.0, 0.0, 2.0, None).update(1.5, _state(goal)) == (False, 'done')
+    dead_gripper = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
+    assert dead_gripper.update(1.0, _state(goal, width=0.0)).send_gripper
+    assert dead_gripper.update(3.0, _state(goal, width=0.0)).result is None
+    assert dead_gripper.update(4.1, _state(goal, width=0.0)).result.startswith('failed: the gripper did not open')
+    opening = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
+    opening.update(1.0, _state(goal, width=0.0))
+    assert opening.update(1.5, _state(goal, width=0.0795)).result == 'done'
+
+
+# --- the controller's state between messages ---------------------------------------------------
+
+def _controller(policy=None, needs_points=False):
+    from hdp_controller.controller_logic import SegmentController
+    controller = SegmentController(policy or FakePolicy([panda.HOME + 0.1]), needs_points, 0.5, 5.0)
+    controller.on_joint_state(joint_state_msg(panda.HOME))
+    return controller
+
+
+def _kinds(outputs):
+    return [kind for kind, _ in outputs]
+
+
+def test_controller_refuses_a_nan_pose_with_a_result_and_no_trajectory():
+    controller = _controller()
+    out = controller.on_nbp(nbp((math.nan, 0, 1), (1, 0, 0, 0), stamp_sec=7), now_s=0.0)
+    assert _kinds(out) == ['error', 'result']
+    assert out[1].msg.stamp.sec == 7 and out[1].msg.frame_id.startswith('failed: invalid pose')
+    assert controller.step(1.0) == [] and controller.pending is None
+
+
+def test_controller_pairs_the_gripper_goal_by_stamp_and_reports_done():
+    controller = _controller()
+    goal = reachable_goal()
+    assert controller.on_gripper_goal(gripper_goal_msg(False, stamp_sec=3)) == []
+    assert controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=0.0) == []
+    out = controller.step(0.05)
+    assert _kinds(out) == ['arm', 'info']
+    end = np.asarray(out[0].msg.points[-1].positions)
+    # busy: a second NBP is refused with its own stamp
+    busy = controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=4), now_s=0.1)
+    assert busy[1].msg.stamp.sec == 4 and 'busy with segment 3.000' in busy[1].msg.frame_id
+    controller.on_joint_state(joint_state_msg(end))
+    out = controller.step(30.0)
+    assert _kinds(out) == ['gripper'] and conversions.parse_joint_trajectory(out[0].msg)[1].tolist() == [[0.0, 0.0]]
+    controller.on_joint_state(joint_state_msg(end, fingers=(0.0, 0.0)))
+    out = controller.step(30.2)
+    assert _kinds(out) == ['info', 'result'] and out[1].msg.frame_id == 'done' and out[1].msg.stamp.sec == 3
+    assert controller.commanded_open is False
+
+
+def test_controller_without_a_gripper_goal_keeps_the_gripper_after_a_short_wait():
+    from hdp_controller.controller_logic import PAIRING_WAIT_S
+    controller = _controller()
+    goal = reachable_goal()
+    controller.on_nbp(nbp(goal[:3], goal[3:]), now_s=0.0)
+    assert controller.step(PAIRING_WAIT_S / 2) == []
+    out = controller.step(PAIRING_WAIT_S + 0.01)
+    assert _kinds(out) == ['info', 'arm', 'info'] and 'gripper stays open' in out[0].msg
+    assert controller.running[1].gripper_open is None
+
+
+def test_controller_refuses_without_joint_states_or_camera():
+    from hdp_controller.controller_logic import SegmentController
+    goal = reachable_goal()
+    blind = SegmentController(FakePolicy([panda.HOME]), False, 0.5, 5.0)
+    blind.on_joint_state(JointState(name=list(panda.FINGER_JOINTS), position=[0.04, 0.04]))   # fingers only
+    blind.on_gripper_goal(gripper_goal_msg(True))
+    blind.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
+    reason = blind.step(0.1)[1].msg.frame_id
+    assert reason.startswith('failed: no usable /joint_states received yet (joint state lacks')
+    assert 'panda_joint1' in reason
+    learned = _controller(needs_points=True)
+    learned.on_gripper_goal(gripper_goal_msg(True))
+    learned.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
+    assert 'no front camera depth' in learned.step(0.1)[1].msg.frame_id
+
+
+def test_controller_builds_front_camera_points_for_learned_methods():
+    from hdp_sim_bridge.cameras import default_cameras
+    camera = default_cameras(32, 24)['front']
+    depth = np.full((24, 32), 1500, np.uint16)
+    policy = FakePolicy([panda.HOME])
+    controller = _controller(policy, needs_points=True)
+    controller.depth = conversions.numpy_to_image(depth, '16UC1', Header(frame_id=camera.frame_id))
+    controller.info = camera.camera_info(Time())
+    controller.on_tf_static(TFMessage(transforms=[camera.transform_stamped()]))
+    goal = reachable_goal()
+    controller.on_gripper_goal(gripper_goal_msg(True))
+    controller.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
+    assert 'arm' in _kinds(controller.step(0.1))
+    assert policy.requests[0].points.shape == (1024, 3)
+
+
+# --- controller_node as a process next to sim_bridge_node -----------------------------------------
+
+def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
+    bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                               '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=2.0',
+                               '-p', 'task:=reach_target', '-p', 'seed:=3'],
+                              env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'method:=planner', '-p', 'use_sim_time:=true'],
+                                  env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        probe = subprocess.run([sys.executable, __file__, 'probe'], env=env, text=True, capture_output=True,
+                               timeout=90)
+    finally:
+        for proc in (controller, bridge):
+            proc.send_signal(signal.SIGINT)
+        errors = [proc.communicate(timeout=20)[1] for proc in (controller, bridge)]
+    assert probe.returncode == 0, probe.stderr + '\n'.join(errors)
+    facts = json.loads(probe.stdout.strip().splitlines()[-1])
+    assert facts['nan_result'].startswith('failed: invalid pose: position must be finite')
+    assert any('refused segment 1.000' in s for s in facts['status'])
+    assert facts['trajectories'] == 1                                 # the NaN pose sent none
+    assert facts['within_limits'] and facts['first_point_error'] < 0.05
+    assert facts['result'] == 'done' and facts['result_stamp'] == 2
+    assert facts['arm_error'] < 0.02                                  # at the last waypoint
+    assert facts['ee_error_m'] < 0.01                                 # so at the NBP
+    assert facts['gripper_width'] < 0.005                             # closed, as asked
+    assert controller.returncode == 0, errors[0]
+
+
+def probe() -> None:
+    """Drive a running controller_node + sim_bridge_node; print what happened as one JSON line."""
+    from hdp_controller import kinematics
+    from hdp_msgs_py import ros
+    from hdp_msgs_py.msg import JointTrajectory, String
+    ros.init(args=sys.argv)
+    node = ros.Node('controller_probe')
+    seen = {'status': [], 'trajectories': [], 'results': [], 'joints': None}
+    node.create_subscription(String, topics.STATUS, lambda m: seen['status'].append(m.data), 50)
+    node.create_subscription(JointTrajectory, topics.ARM_TRAJECTORY, seen['trajectories'].append, 10)
+    node.create_subscription(Header, topics.SEGMENT_RESULT, seen['results'].append, 10)
+    node.create_subscription(JointState, topics.JOINT_STATES, lambda m: seen.__setitem__('joints', m), 10)
+    pose_pub = node.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
+    gripper_pub = node.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS)
+
+    def spin(seconds, until):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not until():
+            ros.spin_once(node, timeout_sec=0.05)
+        return until()
+
+    # The controller is up when it subscribes to both inputs and publishes results.
+    assert spin(60, lambda: seen['joints'] is not None and pose_pub.get_subscription_count() > 0
+                and gripper_pub.get_subscription_count() > 0
+                and node.count_publishers(topics.SEGMENT_RESULT) > 0), 'controller_node did not come up'
+    time.sleep(0.5)
+    facts = {}
+    gripper_pub.publish(gripper_goal_msg(False, stamp_sec=1))
+    pose_pub.publish(nbp((math.nan, 0.0, 1.0), (1, 0, 0, 0), stamp_sec=1))
+    assert spin(20, lambda: seen['results']), 'no result for the NaN pose'
+    facts['nan_result'] = seen['results'][0].frame_id
+
+    goal = reachable_goal()
+    gripper_pub.publish(gripper_goal_msg(False, stamp_sec=2))
+    pose_pub.publish(nbp(goal[:3], goal[3:], stamp_sec=2))
+    assert spin(45, lambda: len(seen['results']) >= 2), 'no result for the reachable pose'
+    result = seen['results'][1]
+    facts.update(result=result.frame_id, result_stamp=result.stamp.sec, trajectories=len(seen['trajectories']))
+    if seen['trajectories']:
+        _, positions, _, _ = conversions.parse_joint_trajectory(seen['trajectories'][0])
+        names = list(seen['joints'].name)
+        position = np.asarray(seen['joints'].position, dtype=float)
+        q = position[[names.index(n) for n in panda.ARM_JOINTS]]
+        end = kinematics.fk_pose(torch.as_tensor(q, dtype=torch.float64)).numpy()
+        facts.update(within_limits=panda.within_limits(positions),
+                     first_point_error=float(np.max(np.abs(positions[0] - panda.HOME))),
+                     arm_error=float(np.max(np.abs(q - positions[-1]))),
+                     ee_error_m=float(np.linalg.norm(end[:3] - goal[:3])),
+                     gripper_width=float(sum(position[names.index(n)] for n in panda.FINGER_JOINTS)))
+    spin(0.5, lambda: False)
+    facts['status'] = seen['status']
+    print(json.dumps(facts), flush=True)
+    node.destroy_node()
+    ros.try_shutdown()
+
+
+if __name__ == '__main__' and sys.argv[1:2] == ['probe']:
+    probe()

@@ -1,0 +1,412 @@
+"""planner_node: instruction validation, the observe -> predict -> send -> wait loop, the node as
+a process (refusals, camera timeout, segments against a stand-in controller), and `hdp launch`.
+
+No trained checkpoint is used: the processes load a tiny untrained agent written to tmp_path.
+Run as a script, this file is the stand-in controller: `python test_planner_node.py controller`.
+"""
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from hdp_msgs_py import conversions, panda, topics
+from hdp_msgs_py.msg import Header, JointState, TFMessage, Time, TransformStamped
+from hdp_planner.agent import NextBestPose
+from hdp_planner.planner_logic import (MAX_INSTRUCTION_CHARS, InstructionRefused, Observations, PlannerLoop,
+                                       validate_instruction)
+
+torch.set_num_threads(1)
+
+VOCABULARY = ('open', 'the', 'drawer', 'red', 'cup', 'pick', 'up', 'to', 'and')
+
+
+# --- instructions -------------------------------------------------------------------------
+
+@pytest.mark.parametrize('text, reason', [
+    ('', 'empty'), ('   \n', 'empty'),
+    ('open the drawer ' * 20, f'more than {MAX_INSTRUCTION_CHARS}'),
+    ('make me a sandwich', 'names anything the agent was trained on'),
+    ('the the and to up', 'names anything'),           # filler words alone name no task
+])
+def test_instructions_are_refused_with_a_reason(text, reason):
+    with pytest.raises(InstructionRefused, match=reason):
+        validate_instruction(text, VOCABULARY)
+
+
+def test_valid_instructions_are_stripped_and_may_have_unknown_words():
+    assert validate_instruction('  Open the RED drawer, please!\n', VOCABULARY) == 'Open the RED drawer, please!'
+    assert validate_instruction('cup ' + 'x' * (MAX_INSTRUCTION_CHARS - 4), VOCABULARY)
+
+
+# --- the loop, with a fake agent and synthetic frames ---------------------------------------------
+
+class FakeAgent:
+    def __init__(self):
+        self.calls = []
+
+    def predict(self, frames, infos, to_world, instruction, proprio):
+        self.calls.append((frames, infos, to_world, instruction, proprio))
+        return NextBestPose(np.array([0.5, 0.1, 0.9]), np.array([1.0, 0.0, 0.0, 0.0]), len(self.calls) % 2 == 0, 0.75)
+
+
+def _stamp(seconds: float) -> Time:
+    return conversions.seconds_to_time(seconds)
+
+
+def feed_frames(observations: Observations, seconds: float, cameras=topics.CAMERAS) -> None:
+    """Colour, depth, camera_info, extrinsics and a joint state, all stamped ``seconds``."""
+    for camera in cameras:
+        header = Header(stamp=_stamp(seconds), frame_id=f'{camera}_optical')
+        observations.on_color(camera, conversions.numpy_to_image(np.zeros((4, 6, 3), np.uint8), 'rgb8', header))
+        observations.on_depth(camera, conversions.numpy_to_image(np.full((4, 6), 900, np.uint16), '16UC1', header))
+        observations.on_info(camera, conversions.intrinsics_to_camera_info(
+            conversions.Intrinsics(5.0, 5.0, 3.0, 2.0, 6, 4), f'{camera}_optical', _stamp(seconds)))
+        observations.on_tf_static(TFMessage(transforms=[TransformStamped(
+            header=Header(frame_id='world'), child_frame_id=f'{camera}_optical',
+            transform=conversions.matrix_to_transform(np.eye(4)))]))
+    observations.on_joint_state(JointState(header=Header(stamp=_stamp(seconds)),
+                                           name=list(panda.ARM_JOINTS + panda.FINGER_JOINTS),
+                                           position=[*panda.HOME, 0.04, 0.04]))
+
+
+def _loop(**kwargs) -> PlannerLoop:
+    return PlannerLoop(FakeAgent(), VOCABULARY, **{'max_segments': 3, 'camera_timeout_s': 2.0,
+                                                   'result_timeout_s': 10.0, **kwargs})
+
+
+def _result(stamp, text='done'):
+    return Header(stamp=stamp, frame_id=text)
+
+
+def _texts(outputs, kind=None):
+    return [msg for k, msg in outputs if k in ((kind,) if kind else ('info', 'error'))]
+
+
+def test_a_segment_sends_gripper_goal_and_nbp_with_one_stamp_then_waits_for_fresh_frames():
+    loop = _loop()
+    feed_frames(loop.observations, 1.0)
+    assert 'up to 3 segments' in _texts(loop.on_instruction('open the drawer', now_s=100.0))[0]
+    out = loop.step(100.1, 5_000_000_000)
+    assert [k for k, _ in out] == ['gripper_goal', 'nbp', 'info']
+    goal, pose = out[0].msg, out[1].msg
+    assert goal.header.stamp == pose.header.stamp == Time(sec=5)
+    assert goal.name == [topics.GRIPPER_GOAL_JOINT] and list(goal.position) == [0.0]      # first call: close
+    assert pose.header.frame_id == 'world' and pose.pose.position.x == pytest.approx(0.5)
+    frames, infos, to_world, instruction, (q, gripper_open) = loop.agent.calls[0]
+    assert instruction == 'open the drawer' and np.allclose(q, panda.HOME) and gripper_open is True
+    assert frames['front'][0].shape == (4, 6, 3) and frames['side'][1].dtype == np.uint16
+    assert to_world['side'].child_frame_id == 'side_optical'
+    assert loop.step(101.0, 6_000_000_000) == []                              # waiting for the result
+
+    assert loop.on_result(_result(Time(sec=4)), 101.0) == []                  # someone else's segment
+    loop.observations.on_joint_state(JointState(header=Header(stamp=_stamp(1.5)), name=list(panda.ARM_JOINTS +
+                                     panda.FINGER_JOINTS), position=[*panda.HOME, 0.0, 0.0]))
+    line = _texts(loop.on_result(_result(pose.header.stamp), 102.5))[0]
+    assert line == 'segment 1: pose (0.500, 0.100, 0.900) gripper close -> done in 2.4 s'
+    assert loop.gripper_open is False
+    assert loop.step(102.6, 7_000_000_000) == []                              # the frames are from before
+    feed_frames(loop.observations, 2.0)
+    out = loop.step(102.7, 7_000_000_000)
+    assert out[1].msg.header.stamp == Time(sec=7) and loop.agent.calls[1][4][1] is False
+
+
+def test_the_loop_ends_on_success_reported_after_the_segment():
+    loop = _loop()
+    loop.on_success(True)                                   # stale: from before the instruction
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    assert loop.step(0.1, 1) == []                          # waits for a fresh success report
+    loop.on_success(False)
+    stamp = loop.step(0.2, 2)[1].msg.header.stamp
+    loop.on_result(_result(stamp), 1.0)
+    loop.on_success(True)
+    out = loop.step(1.1, 3)
+    assert _texts(out) == ["instruction 'open the drawer': task succeeded after 1 segments"]
+    assert loop.instruction is None and loop.step(1.2, 4) == []
+
+
+def test_max_segments_ends_the_loop_on_a_robot_without_success_reports():
+    loop = _loop(max_segments=2)
+    loop.on_instruction('pick up the red cup', 0.0)
+    for i in range(2):
+        feed_frames(loop.observations, 1.0 + i)
+        stamp = loop.step(0.1 + i, 10 + i)[1].msg.header.stamp
+        loop.on_result(_result(stamp), 0.5 + i)
+    assert _texts(loop.step(3.0, 20), 'info') == [
+        "instruction 'pick up the red cup': 2 segments done (this robot reports no success)"]
+
+
+def test_camera_timeout_stops_the_instruction_and_names_the_camera():
+    loop = _loop()
+    feed_frames(loop.observations, 1.0, cameras=('front',))
+    loop.on_instruction('open the drawer', 10.0)
+    assert loop.step(11.9, 1) == []
+    out = loop.step(12.1, 2)
+    assert _texts(out, 'error') == ["instruction 'open the drawer': camera side timed out after 2.0 s "
+                                    "(no fresh side camera colour, side camera depth, side camera_info)"]
+    assert loop.instruction is None and loop.agent.calls == []
+
+
+def test_a_dead_controller_is_reported_and_the_next_instruction_recovers():
+    loop = _loop()
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    loop.step(0.1, 1)
+    out = loop.step(10.2, 2)
+    assert 'no result from the controller within 10.0 s (is controller_node running?)' in _texts(out, 'error')[0]
+    assert loop.instruction is None
+    loop.on_instruction('open the drawer', 20.0)
+    feed_frames(loop.observations, 2.0)
+    assert [k for k, _ in loop.step(20.1, 3)][:2] == ['gripper_goal', 'nbp']
+
+
+def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_the_result():
+    loop = _loop()
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    stamp = loop.step(0.1, 1)[1].msg.header.stamp
+    assert 'queued' in _texts(loop.on_instruction('pick up the cup', 0.2))[0]
+    out = loop.on_result(_result(stamp, 'failed: no path'), 1.0)
+    assert _texts(out) == ['segment 1: pose (0.500, 0.100, 0.900) gripper close -> failed: no path in 0.9 s',
+                           "instruction 'open the drawer': segment 1 failed",
+                           "instruction 'pick up the cup': up to 3 segments"]
+    assert loop.instruction == 'pick up the cup' and loop.queued is None
+
+
+def test_a_refused_instruction_leaves_the_running_one_alone():
+    loop = _loop()
+    loop.on_instruction('open the drawer', 0.0)
+    assert _texts(loop.on_instruction('', 0.1), 'error') == ['refused instruction: the instruction is empty']
+    assert loop.instruction == 'open the drawer'
+
+
+# --- processes ---------------------------------------------------------------------------------
+
+@pytest.fixture
+def tiny_checkpoint(tmp_path):
+    """An untrained next-best-pose agent small enough to load and predict in a moment."""
+    from hdp_planner import checkpoint, language
+    from hdp_planner.model import ModelConfig, NextBestPoseNet
+    torch.manual_seed(0)
+    model = NextBestPoseNet(ModelConfig(vocabulary=tuple(language.task_vocabulary()), grid_size=8,
+                                        channels=(4, 8, 8), language_dim=16, head_hidden=32))
+    path = tmp_path / 'tiny_agent.pt'
+    checkpoint.save(path, model, None, 0, {}, {})
+    return path
+
+
+def _env(domain: int) -> dict:
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
+
+
+def _stop(*procs) -> list[str]:
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    return [proc.communicate(timeout=30)[1] or '' for proc in procs]
+
+
+def _status_listener(env, expect: int, seconds: float, *publish) -> subprocess.Popen:
+    """This file as a script: publish instructions, collect /hdp/status and NBPs, print JSON."""
+    return subprocess.Popen([sys.executable, __file__, 'listen', str(expect), str(seconds), *publish],
+                            env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def test_planner_node_refuses_bad_instructions_and_reports_a_camera_timeout(ros_domain, tiny_checkpoint):
+    env = _env(ros_domain)
+    planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'camera_timeout_s:=2.0'],
+                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        listener = _status_listener(env, 4, 45, '', 'open the drawer ' * 20, 'make me a sandwich',
+                                    'open the middle drawer')
+        out, err = listener.communicate(timeout=60)
+    finally:
+        planner_err, = _stop(planner)
+    assert listener.returncode == 0, err + planner_err
+    facts = json.loads(out.strip().splitlines()[-1])
+    refusals = [s for s in facts['status'] if 'refused instruction' in s]
+    assert refusals == ['planner_node: refused instruction: the instruction is empty',
+                        'planner_node: refused instruction: the instruction has 319 characters, more than 256',
+                        "planner_node: refused instruction: no word of 'make me a sandwich' names anything the "
+                        "agent was trained on (words such as azure, ball, black, blue, bottom, box, ...)"]
+    timeout = [s for s in facts['status'] if 'timed out' in s]
+    assert timeout and timeout[0].startswith("planner_node: instruction 'open the middle drawer': "
+                                             'camera front, side timed out after 2.0 s')
+    assert facts['nbps'] == 0
+    assert planner.returncode == 0, planner_err
+
+
+def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_domain, tiny_checkpoint):
+    env = _env(ros_domain)
+    bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                               '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=4.0',
+                               '-p', 'task:=open_drawer', '-p', 'seed:=1'],
+                              env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'max_segments:=2',
+                                '-p', 'camera_timeout_s:=20.0'],
+                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        controller = subprocess.run([sys.executable, __file__, 'controller'], env=env, text=True,
+                                    capture_output=True, timeout=90)
+    finally:
+        errors = _stop(planner, bridge)
+    assert controller.returncode == 0, controller.stderr + '\n'.join(errors)
+    facts = json.loads(controller.stdout.strip().splitlines()[-1])
+    assert len(facts['segments']) == 2
+    for segment in facts['segments']:
+        assert segment['gripper_stamp'] == segment['stamp'] and segment['frame'] == 'world'
+        assert segment['in_workspace'] and segment['gripper_width'] in (0.0, panda.GRIPPER_OPEN_WIDTH)
+    assert facts['segments'][1]['stamp'] > facts['segments'][0]['stamp']
+    status = [s for s in facts['status'] if s.startswith('planner_node')]
+    done = r'planner_node: segment {}: pose \(-?[\d.]+, -?[\d.]+, [\d.]+\) gripper (open|close) -> done in [\d.]+ s'
+    assert any(re.fullmatch(done.format(1), s) for s in status), status
+    assert any(re.fullmatch(done.format(2), s) for s in status), status
+    assert status[-1] == "planner_node: instruction 'open the middle drawer': 2 segments done without success"
+    assert planner.returncode == 0, errors[0]
+
+
+# --- hdp launch -----------------------------------------------------------------------------------
+
+def _graph_yaml(tmp_path, planner_checkpoint) -> str:
+    path = tmp_path / 'graph.yaml'
+    path.write_text(f"""
+sim_bridge_node:
+  ros__parameters: {{camera_width: 64, camera_height: 48, camera_rate_hz: 2.0}}
+planner_node:
+  ros__parameters: {{checkpoint: '{planner_checkpoint}'}}
+controller_node:
+  ros__parameters: {{use_sim_time: true, method: rkd}}
+""")
+    return str(path)
+
+
+def _launch(ros_domain, params, *extra) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--params-file', params, *extra],
+                            env=_env(ros_domain), text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def _collect_lines(proc) -> tuple[list[str], threading.Thread]:
+    """The process's output lines, appended as they come by a reader thread (ends at EOF)."""
+    lines = []
+    reader = threading.Thread(target=lambda: lines.extend(line.rstrip('\n') for line in proc.stdout), daemon=True)
+    reader.start()
+    return lines, reader
+
+
+def test_hdp_launch_starts_the_graph_prefixes_output_and_stops_on_sigint(ros_domain, tmp_path, tiny_checkpoint):
+    params = _graph_yaml(tmp_path, tiny_checkpoint)
+    launch = _launch(ros_domain, params, '-p', 'controller_node:method:=planner')
+    lines, reader = _collect_lines(launch)
+    ready = ('[sim_bridge_node] ', '[planner_node] ', '[controller_node] ')
+    end = time.monotonic() + 60
+    while time.monotonic() < end and launch.poll() is None and not all(
+            any(line.startswith(p) and ('ready' in line or 'episode' in line) for line in list(lines)) for p in ready):
+        time.sleep(0.2)
+    launch.send_signal(signal.SIGINT)
+    launch.wait(timeout=40)
+    reader.join(timeout=5)
+    text = '\n'.join(lines)
+    assert launch.returncode == 0, text
+    assert any(line.startswith('[controller_node] ') and 'ready: method planner' in line for line in lines), text
+    assert any(line.startswith('[planner_node] ') and 'ready: agent' in line for line in lines), text
+    assert any(line.startswith('[sim_bridge_node] ') and 'episode reach_target' in line for line in lines), text
+    assert '[launch] SIGINT: stopping the nodes' in text
+
+
+def test_hdp_launch_exits_non_zero_when_a_node_dies(ros_domain, tmp_path):
+    params = _graph_yaml(tmp_path, tmp_path / 'missing.pt')
+    launch = _launch(ros_domain, params, '--nodes', 'planner_node,controller_node',
+                     '-p', 'controller_node:method:=planner')
+    out, _ = launch.communicate(timeout=60)
+    assert launch.returncode == 1, out
+    assert '[planner_node] [ERROR] [planner_node]: cannot load the next-best-pose agent' in out
+    assert '[launch] planner_node exited with code 1; stopping the other nodes' in out
+
+
+# --- helper processes -------------------------------------------------------------------------------
+
+def _node(name):
+    from hdp_msgs_py import ros
+    from hdp_msgs_py.msg import String
+    ros.init(args=sys.argv)
+    node = ros.Node(name)
+    status = []
+    node.create_subscription(String, topics.STATUS, lambda m: status.append(m.data), 50)
+    return node, status
+
+
+def _spin(node, seconds: float, until=lambda: False) -> bool:
+    from hdp_msgs_py import ros
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not until():
+        ros.spin_once(node, timeout_sec=0.05)
+    return until()
+
+
+def listen(expect: int, seconds: float, *instructions: str) -> None:
+    """Publish each instruction once the planner listens; report status lines and NBPs seen."""
+    from hdp_msgs_py import ros
+    from hdp_msgs_py.msg import PoseStamped, String
+    node, status = _node('planner_listener')
+    nbps = []
+    node.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, nbps.append, 10)
+    instruction = node.create_publisher(String, topics.INSTRUCTION, 10)
+    assert _spin(node, 60, lambda: instruction.get_subscription_count() > 0), 'planner_node did not come up'
+    _spin(node, 0.5)
+    for text in instructions:
+        instruction.publish(String(data=text))
+        _spin(node, 0.2)
+    _spin(node, seconds, lambda: len([s for s in status if 'refused' in s or 'timed out' in s]) >= expect)
+    _spin(node, 0.5)
+    print(json.dumps({'status': status, 'nbps': len(nbps)}), flush=True)
+    node.destroy_node()
+    ros.try_shutdown()
+
+
+def controller() -> None:
+    """Stand in for controller_node: answer each NBP 'done' after a moment; report what came."""
+    from hdp_msgs_py import ros, workspace
+    from hdp_msgs_py.msg import PoseStamped, String
+    node, status = _node('fake_controller')
+    goals, poses = {}, []
+    node.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
+                             lambda m: goals.__setitem__(conversions.time_to_seconds(m.header.stamp), m), 10)
+    node.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, poses.append, 10)
+    results = node.create_publisher(Header, topics.SEGMENT_RESULT, 10)
+    instruction = node.create_publisher(String, topics.INSTRUCTION, 10)
+    assert _spin(node, 60, lambda: instruction.get_subscription_count() > 0 and results.get_subscription_count() > 0
+                 ), 'planner_node did not come up'
+    _spin(node, 0.5)
+    instruction.publish(String(data='open the middle drawer'))
+    segments = []
+    for _ in range(2):
+        assert _spin(node, 30, lambda: len(poses) > len(segments)), f'no NBP; status: {status}'
+        pose = poses[len(segments)]
+        stamp = conversions.time_to_seconds(pose.header.stamp)
+        _spin(node, 0.3)
+        goal = goals.get(stamp)
+        xyz, _ = conversions.pose_to_xyz_quat(pose)
+        segments.append({'stamp': stamp, 'frame': pose.header.frame_id, 'gripper_stamp': stamp if goal else None,
+                         'gripper_width': float(goal.position[0]) if goal else None,
+                         'in_workspace': bool(workspace.in_workspace(xyz[None], above_table=0.0)[0])})
+        results.publish(Header(stamp=pose.header.stamp, frame_id=topics.SEGMENT_DONE))
+    _spin(node, 15, lambda: any('segments done' in s for s in status))
+    print(json.dumps({'segments': segments, 'status': status}), flush=True)
+    node.destroy_node()
+    ros.try_shutdown()
+
+
+if __name__ == '__main__':
+    {'listen': lambda: listen(int(sys.argv[2]), float(sys.argv[3]), *sys.argv[4:]),
+     'controller': controller}[sys.argv[1]]()
