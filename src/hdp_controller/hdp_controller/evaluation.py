@@ -138,6 +138,18 @@ def _nothing(*_):
     pass
 
 
+def execute_segment(world, task, joints, was_open: bool, goal_open: bool,
+                    config: experts.ExpertConfig | None = None) -> np.ndarray:
+    """Run joint waypoints (K, 7) as the experts do, then the gripper action if it changes;
+    returns the executed path (K + 1, 7), starting from where the arm really is (a learned
+    trajectory need not start exactly there)."""
+    path = np.vstack([world.joint_positions(), joints])
+    experts.follow(world, task, path, config or experts.ExpertConfig(), _nothing, _nothing, hold=0.0)
+    if goal_open != was_open:
+        experts.actuate(world, task, 'open' if goal_open else 'close', _nothing, _nothing)
+    return path
+
+
 def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points: int = N_POINTS,
                 world: PandaWorld | None = None, config: experts.ExpertConfig | None = None) -> EpisodeRecord:
     """Replay ``oracle``'s NBPs with ``policy`` on the same scene; see the module docstring.
@@ -161,12 +173,8 @@ def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points
         if not plan.ok:
             record.failure, record.ik_error = plan.failure or 'no_plan', bool(plan.ik_error)
             return record
-        # From where the arm really is: a learned trajectory need not start exactly there.
-        path = np.vstack([world.joint_positions(), plan.joints])
-        experts.follow(world, task, path, config, _nothing, _nothing, hold=0.0)
+        path = execute_segment(world, task, plan.joints, request.gripper_open, goal_open, config)
         record.joint_paths.append(path.round(5).tolist())
-        if goal_open != request.gripper_open:
-            experts.actuate(world, task, 'open' if goal_open else 'close', _nothing, _nothing)
         record.grasps_lost = world.grasp_lost_count
         if task.success(world):
             record.success = True

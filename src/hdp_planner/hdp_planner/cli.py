@@ -81,3 +81,49 @@ def run_eval(args) -> int:
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
+
+
+def configure_hierarchy(parser) -> None:
+    """Closed-loop evaluation of the whole hierarchy in the sim, like the paper's Table 1."""
+    parser.add_argument('--agents', default='hdp,nbp_planner,nbp_joint',
+                        help='comma-separated: hdp (agent + RK-Diffuser), nbp_planner (agent + planner), '
+                             'nbp_joint (agent + joint diffusion); default all three')
+    parser.add_argument('--tasks', default='all', help='comma-separated task names or "all"')
+    parser.add_argument('--episodes', type=int, default=10, help='episodes per task (default 10)')
+    parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
+    parser.add_argument('--phrasings', default='seen', choices=('seen', 'heldout', 'both'),
+                        help='instructions from training phrasings, held-out ones, or both (default seen)')
+    parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent.pt')
+    parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser.pt')
+    parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'), help='RK-Diffuser sampler (default ddim)')
+    parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
+    parser.add_argument('--threads', type=int, help='torch CPU threads')
+    parser.add_argument('--json', type=Path, help='also write the results here')
+    parser.set_defaults(func=run_hierarchy)
+
+
+def run_hierarchy(args) -> int:
+    from hdp_controller.policy import load_policy
+    from hdp_sim_bridge.tasks import TASKS
+
+    from .agent import NextBestPoseAgent
+    from .hierarchy import AGENTS, evaluate, markdown_table
+    agents = [a.strip() for a in args.agents.split(',') if a.strip()]
+    tasks = list(TASKS) if args.tasks == 'all' else [t.strip() for t in args.tasks.split(',') if t.strip()]
+    if set(agents) - set(AGENTS) or not agents:
+        raise SystemExit(f'unknown agent(s) {sorted(set(agents) - set(AGENTS))}; agents: {", ".join(AGENTS)}')
+    _threads(args)
+    agent_path = args.agent_checkpoint or Path(__file__).resolve().parents[3] / 'models' / 'hdp_nbp_agent.pt'
+    agent = NextBestPoseAgent.from_checkpoint(agent_path)
+    low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler) for name in agents}
+    phrasings = ('seen', 'heldout') if args.phrasings == 'both' else (args.phrasings,)
+    try:
+        results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments)
+    except ValueError as err:
+        print(f'hdp eval hierarchy: {err}', file=sys.stderr)
+        return 1
+    print(markdown_table(results))
+    print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {results['seeds'][0]}-{results['seeds'][1]}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return 0

@@ -1,0 +1,70 @@
+"""The closed-loop hierarchy harness (Table 1 setting), with stand-in agents so it needs no checkpoint."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hdp_controller.baselines import PlannerPolicy
+from hdp_controller.evaluation import oracle_episode
+from hdp_planner import language
+from hdp_planner.agent import NextBestPose
+from hdp_planner.hierarchy import episode_instruction, evaluate, markdown_table, run_episode
+
+HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+
+
+class ReplayAgent:
+    """Predicts the expert's keyframes one after another, and records what it was shown."""
+
+    def __init__(self, oracle):
+        self.nbps, self.calls = oracle.nbps, []
+
+    def predict(self, frames, infos, to_world, instruction, proprio):
+        self.calls.append((sorted(frames), instruction, proprio))
+        pose, is_open = self.nbps[min(len(self.calls), len(self.nbps)) - 1]
+        return NextBestPose(pose[:3], pose[3:], is_open, 1.0)
+
+
+class StuckAgent:
+    def predict(self, frames, infos, to_world, instruction, proprio):
+        return NextBestPose(np.array([0.5, 0.0, 1.1]), np.array([1.0, 0.0, 0.0, 0.0]), True, 1.0)
+
+
+def test_agent_with_planner_solves_reach_target_and_re_observes_each_segment():
+    oracle = oracle_episode('reach_target', 4001)
+    agent = ReplayAgent(oracle)
+    record = run_episode('nbp_planner', agent, PlannerPolicy(), 'reach_target', 4001)
+    assert record.success and record.failure is None and record.segments == len(oracle.nbps)
+    frames, instruction, (q, gripper_open) = agent.calls[0]
+    assert frames == ['front', 'side'] and instruction == record.instruction and len(q) == 7
+
+
+def test_segment_budget_ends_an_episode():
+    record = run_episode('nbp_planner', StuckAgent(), PlannerPolicy(), 'open_drawer', 4002, max_segments=2)
+    assert not record.success and record.segments == 2 and record.failure == 'segment budget spent'
+
+
+def test_seen_and_heldout_instructions_differ():
+    for task in ('open_drawer', 'pick_up_cup'):
+        seen, heldout = (episode_instruction(task, 7, 0, p) for p in ('seen', 'heldout'))
+        held = language.heldout_phrasings(task)[0]
+        assert seen != heldout
+        assert heldout.split()[0] == held.split()[0]
+
+
+def test_evaluate_table_and_training_seed_refusal():
+    planner = PlannerPolicy()
+    results = evaluate(StuckAgent(), {'nbp_planner': planner}, ['reach_target'], 1, 4003, max_segments=1,
+                       progress=False)
+    table = markdown_table(results)
+    assert '| nbp_planner | seen | 0 | 0.0 |' in table
+    planner.training_seeds = {'reach_target': [4003]}
+    with pytest.raises(ValueError, match='4003'):
+        evaluate(StuckAgent(), {'nbp_planner': planner}, ['reach_target'], 1, 4003, progress=False)
+
+
+def test_cli_help():
+    result = subprocess.run([*HDP, 'eval', 'hierarchy', '--help'], text=True, capture_output=True, timeout=300)
+    assert result.returncode == 0 and '--phrasings' in result.stdout
