@@ -21,12 +21,16 @@ from .kinematics import ROBOT_BASE, fk_pose, forward_kinematics, panda_chain, po
 
 _LIMIT_MARGIN = 1e-3      # rad inside the limits
 _PER_CM = 100.0
+_MAX_NEWTON_STEP = 0.1    # rad per joint and Gauss-Newton step
+# A joint trajectory that moves a joint further than this between two of its 64
+# waypoints is not one motion of one arm configuration.
+MAX_JOINT_STEP = 0.5      # rad
 # ||R_a - R_b||_F^2 ~= 2 angle^2 for small angles; in degrees^2 after this scale.
 _PER_RAD_SQUARED = (180 / torch.pi) ** 2
 
 
 def refine(joints: torch.Tensor, poses: torch.Tensor, steps: int = 100, lr: float = 0.05,
-           goal_weight: float = 10.0, newton_steps: int = 5) -> torch.Tensor:
+           goal_weight: float = 10.0, newton_steps: int = 20) -> torch.Tensor:
     """joints (B, T, 7) rad, poses (B, T, 7) xyz + quat xyzw -> refined joints (B, T, 7).
 
     Adam on the per-waypoint squared translation error in cm plus the
@@ -36,7 +40,8 @@ def refine(joints: torch.Tensor, poses: torch.Tensor, steps: int = 100, lr: floa
     """
     lower = torch.tensor(panda.LOWER, dtype=joints.dtype) + _LIMIT_MARGIN
     upper = torch.tensor(panda.UPPER, dtype=joints.dtype) - _LIMIT_MARGIN
-    start = joints[:, :1].detach()
+    joints = continuous_start(joints.detach())
+    start = joints[:, :1]
     free = joints[:, 1:].detach().clamp(lower, upper).requires_grad_(True)
     target_xyz, target_rot = poses[:, 1:, :3], quat_to_matrix(poses[:, 1:, 3:])
     weights = torch.ones(free.shape[1], dtype=joints.dtype)
@@ -76,7 +81,18 @@ def _damped_least_squares_step(q, poses, lower, upper, damping: float = 1e-2):
     error = torch.cat([target[:, :3] - position, torch.stack([skew[:, 2, 1], skew[:, 0, 2], skew[:, 1, 0]], 1)], 1)
     jjt = jacobian @ jacobian.transpose(1, 2) + damping ** 2 * torch.eye(6, dtype=q.dtype)
     step = (jacobian.transpose(1, 2) @ torch.linalg.solve(jjt, error[:, :, None]))[:, :, 0]
+    # A far-off waypoint would otherwise jump to another arm configuration (a wrist
+    # turned by 2 pi, an elbow flipped) that the executed motion then sweeps through.
+    step = step * (_MAX_NEWTON_STEP / step.abs().amax(1, keepdim=True).clamp(min=_MAX_NEWTON_STEP))
     return (flat + step).clamp(lower, upper).reshape(q.shape)
+
+
+def continuous_start(joints: torch.Tensor, max_step: float = MAX_JOINT_STEP) -> torch.Tensor:
+    """joints (B, T, 7) -> the same, or for a trajectory that leaves its start waypoint by more
+    than ``max_step`` rad in one step (it lies in another arm configuration than the arm is in),
+    the start repeated: refinement then grows the motion out of where the arm is."""
+    jump = torch.diff(joints, dim=1).abs().amax((1, 2))
+    return torch.where((jump > max_step)[:, None, None], joints[:, :1].expand_as(joints), joints)
 
 
 def goal_error(joints: torch.Tensor, goal_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
