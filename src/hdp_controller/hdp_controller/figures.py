@@ -2,8 +2,8 @@
 
 RK-Diffuser runs an oracle episode (evaluation.oracle_episode); at every
 segment the planner baseline also plans from the same state (not executed).
-The figure shows the segment whose pose trajectory bends most (lowest
-trajectory rank: the hinge arc in open_box): the pose diffuser's
+The figure shows one segment (by default the last: the lid's arc in
+open_box): the pose diffuser's
 trajectory, the joint diffuser's trajectory through FK, the refined joint
 trajectory through FK, and the planner's path through FK; and beside it
 each waypoint's distance to the pose trajectory before and after refinement.
@@ -18,7 +18,6 @@ from hdp_sim_bridge import experts
 from hdp_sim_bridge.world import PandaWorld
 
 from .baselines import PlannerPolicy
-from .dataset import trajectory_rank
 from .evaluation import oracle_episode, world_scene
 from .kinematics import fk_pose
 from .observation import front_camera, front_points, segment_request
@@ -63,7 +62,9 @@ def plot(segment: dict, title: str, path) -> None:
     for key, label, colour, line in styles:
         if segment.get(key) is not None:
             xyz = segment[key]
-            ax.plot(xyz[:, 0], xyz[:, 1], xyz[:, 2], line, color=colour, label=label, linewidth=2)
+            wide = key == 'poses'        # drawn wide and pale: the refined path lies on it
+            ax.plot(xyz[:, 0], xyz[:, 1], xyz[:, 2], line, color=colour, label=label,
+                    linewidth=6 if wide else 2, alpha=0.35 if wide else 1.0)
     ax.scatter(*segment['poses'][-1], color='black', s=40, label='next-best pose')
     ax.set_xlabel('x (m)')
     ax.set_ylabel('y (m)')
@@ -88,6 +89,7 @@ def configure(parser) -> None:
     parser.add_argument('--task', default='open_box')
     parser.add_argument('--seed', type=int, default=3000, help='evaluation seed (default 3000)')
     parser.add_argument('--checkpoint', help='RK-Diffuser checkpoint (default: the released one)')
+    parser.add_argument('--segment', type=int, default=-1, help='segment to show, 1-based (default: the last)')
     parser.add_argument('--out', required=True, help='PNG to write')
     parser.set_defaults(func=run)
 
@@ -98,7 +100,9 @@ def run(args) -> int:
     segments = segments_of_episode(policy, args.task, args.seed)
     if not segments:
         raise SystemExit(f'hdp plot low-level: RK-Diffuser planned no segment on {args.task} seed {args.seed}')
-    chosen = min(range(len(segments)), key=lambda i: trajectory_rank(segments[i]['poses']))
+    chosen = len(segments) - 1 if args.segment == -1 else args.segment - 1
+    if not 0 <= chosen < len(segments):
+        raise SystemExit(f'hdp plot low-level: --segment must be 1..{len(segments)}')
     plot(segments[chosen], f'{args.task} seed {args.seed}, segment {chosen + 1} of {len(segments)}', args.out)
     print(f'wrote {args.out}')
     return 0
