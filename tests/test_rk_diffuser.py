@@ -245,8 +245,8 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     config.write_text('model: {unet_dim: 8, point_features: 16, point_width: 8, n_points: 64, diffusion_steps: 10}\n'
                       'train: {batch_size: 2, save_every: 2, warmup_steps: 1}\n')
     out = tmp_path / 'rkd.pt'
-    base = [*HDP, 'train', 'low-level', '--data', str(episodes), '--out', str(out), '--config', str(config),
-            '--cache', str(tmp_path / 'cache')]
+    options = ['--data', str(episodes), '--config', str(config), '--cache', str(tmp_path / 'cache')]
+    base = [*HDP, 'train', 'low-level', '--out', str(out), *options]
     first = subprocess.run([*base, '--steps', '2'], text=True, capture_output=True, timeout=300)
     assert first.returncode == 0, first.stderr
     assert checkpoint.read(out)['training']['step'] == 2
@@ -257,6 +257,17 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     (tmp_path / 'rkd.pt.resume').unlink()
     fresh = subprocess.run([*base, '--steps', '4'], text=True, capture_output=True, timeout=300)
     assert fresh.returncode == 0 and checkpoint.read(out)['training']['step'] == 4
+    tuned = tmp_path / 'tuned.pt'
+    fine = subprocess.run([*HDP, 'train', 'low-level', '--out', str(tuned), *options, '--steps', '2',
+                           '--init', str(out)],
+                          text=True, capture_output=True, timeout=300)
+    assert fine.returncode == 0, fine.stderr
+    assert checkpoint.read(tuned)['training']['init'] == {'path': str(out), 'step': 4,
+                                                          'wall_time_s': checkpoint.read(out)['training']['wall_time_s']}
+    mismatch = subprocess.run([*HDP, 'train', 'low-level', '--out', str(tmp_path / 'x.pt'), '--data', str(episodes),
+                               '--init', str(out)],
+                              text=True, capture_output=True, timeout=300)
+    assert mismatch.returncode != 0 and 'another model config' in mismatch.stderr
     bad = subprocess.run([*HDP, 'train', 'low-level', '--data', str(tmp_path), '--out', str(out)],
                          text=True, capture_output=True, timeout=120)
     assert bad.returncode != 0 and 'no successful episodes' in bad.stderr

@@ -32,6 +32,8 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--device', default='cpu', choices=('cpu', 'cuda', 'auto'),
                         help='cpu (default), cuda, or auto: cuda when present')
     parser.add_argument('--threads', type=int, help='torch CPU threads (default: torch decides)')
+    parser.add_argument('--init', help='start from the weights of this checkpoint (fine-tuning: fresh optimiser '
+                        'and schedule; the model config must match)')
     parser.add_argument('--cache', help='preprocessing cache directory (default DATA/.cache)')
     parser.set_defaults(func=_train)
 
@@ -61,7 +63,8 @@ def _train(args) -> int:
         torch.set_num_threads(args.threads)
     print(json.dumps({'model': dataclasses.asdict(model_config), 'train': dataclasses.asdict(train_config)}))
     try:
-        out = train(args.data, args.out, model_config, train_config, _device(args.device), args.cache)
+        out = train(args.data, args.out, model_config, train_config, _device(args.device), args.cache,
+                    init=args.init)
     except ValueError as err:
         raise SystemExit(f'hdp train low-level: {err}') from None
     print(f'wrote {out}')

@@ -45,7 +45,9 @@ def _batches(dataset, batch_size: int, seed: int, device: str):
 
 
 def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, device: str = 'cpu',
-          cache_dir=None, log=print) -> Path:
+          cache_dir=None, init=None, log=print) -> Path:
+    """Train and write ``out``. ``init``: a checkpoint whose weights start the
+    run (fine-tuning with a fresh optimiser and schedule); its config must match."""
     out = Path(out)
     resume_path = out.with_name(out.name + '.resume')
     torch.manual_seed(train_config.seed)
@@ -57,17 +59,18 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     log(f'{len(all_segments) - len(segs)} of {len(all_segments)} segments dropped: the arm does not move in them')
     dataset = SegmentDataset(segs, augment=True, seed=train_config.seed)
     model = RKDiffuser(model_config).to(device)
+    init_info = _load_init(model, model_config, init) if init else None
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(train_config.ema_decay))
     optimizer = torch.optim.AdamW(model.parameters(), lr=train_config.lr, weight_decay=train_config.weight_decay)
     schedule = get_cosine_schedule_with_warmup(optimizer, train_config.warmup_steps, train_config.steps)
     step, elapsed = 0, 0.0
     if resume_path.is_file():
         state = torch.load(resume_path, map_location=device, weights_only=True)
-        saved = (state['model_config'], state['train_config'])
-        wanted = (dataclasses.asdict(model_config), dataclasses.asdict(train_config))
-        if _plain(saved[0]) != _plain(wanted[0]) or _plain(saved[1]) != _plain(wanted[1]):
+        saved = (state['model_config'], state['train_config'], state.get('init'))
+        wanted = (dataclasses.asdict(model_config), dataclasses.asdict(train_config), init_info)
+        if any(_plain(a) != _plain(b) for a, b in zip(saved, wanted)):
             raise ValueError(f'{resume_path} was written with another configuration; '
-                             'delete it or pass the same --config/--steps to resume')
+                             'delete it or pass the same --config/--steps/--init to resume')
         model.load_state_dict(state['raw_model'])
         ema.load_state_dict(state['ema'])
         optimizer.load_state_dict(state['optimizer'])
@@ -97,8 +100,19 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
             if step % train_config.save_every == 0 or step == train_config.steps:
                 elapsed = time.monotonic() - started
                 _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config,
-                      train_config, segs, data_dir, losses[-50:])
+                      train_config, segs, data_dir, losses[-50:], init_info)
     return out
+
+
+def _load_init(model, model_config: RKDConfig, init) -> dict:
+    """Copy ``init``'s weights into ``model``; returns its provenance for the new checkpoint."""
+    init_model, payload = checkpoint.load_model(init)
+    if _plain(dataclasses.asdict(init_model.config)) != _plain(dataclasses.asdict(model_config)):
+        raise ValueError(f'{init} has another model config; pass the same --config')
+    model.load_state_dict(init_model.state_dict())
+    training = payload.get('training') or {}
+    return {'path': str(init), 'step': int(training.get('step', 0)),
+            'wall_time_s': float(training.get('wall_time_s', 0.0))}
 
 
 def _plain(value):
@@ -111,19 +125,19 @@ def _plain(value):
 
 
 def _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config, train_config,
-          segs, data_dir, recent):
+          segs, data_dir, recent, init_info):
     ema_model = ema.module
     ema_model.config = model_config
     checkpoint.save(out, ema_model, {
         'training': {'step': step, 'steps': train_config.steps, 'wall_time_s': elapsed,
                      'train_config': dataclasses.asdict(train_config), 'data': str(data_dir),
-                     'segments': len(segs), 'final_losses': {k: float(np.mean([r[k] for r in recent]))
-                                                              for k in recent[0]}},
+                     'segments': len(segs), 'init': init_info,
+                     'final_losses': {k: float(np.mean([r[k] for r in recent])) for k in recent[0]}},
         'training_seeds': segs.training_seeds()})
     state = {'step': step, 'elapsed_s': elapsed, 'raw_model': model.state_dict(), 'ema': ema.state_dict(),
              'optimizer': optimizer.state_dict(), 'schedule': schedule.state_dict(),
              'torch_rng': torch.get_rng_state(), 'model_config': dataclasses.asdict(model_config),
-             'train_config': dataclasses.asdict(train_config)}
+             'train_config': dataclasses.asdict(train_config), 'init': init_info}
     tmp = resume_path.with_name(resume_path.name + '.tmp')
     torch.save(state, tmp)
     tmp.replace(resume_path)
