@@ -63,6 +63,10 @@ def test_evaluate_table_and_training_seed_refusal():
     planner.training_seeds = {'reach_target': [4003]}
     with pytest.raises(ValueError, match='4003'):
         evaluate(StuckAgent(), {'nbp_planner': planner}, ['reach_target'], 1, 4003, progress=False)
+    agent = StuckAgent()
+    agent.training_seeds = {'reach_target': [4003]}
+    with pytest.raises(ValueError, match='next-best-pose agent was trained on reach_target seeds 4003'):
+        evaluate(agent, {'nbp_planner': PlannerPolicy()}, ['reach_target'], 1, 4003, progress=False)
 
 
 def test_cli_help():

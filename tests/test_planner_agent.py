@@ -30,7 +30,7 @@ def tiny_model(seed=0) -> NextBestPoseNet:
     return NextBestPoseNet(ModelConfig(vocabulary=tuple(language.task_vocabulary()), **TINY))
 
 
-def synthetic_episode(rng, task='open_drawer', samples=2) -> dict:
+def synthetic_episode(rng, task='open_drawer', samples=2, seed=0) -> dict:
     """An episode's samples as episode_samples returns them: a box of points per observation."""
     clouds = [rng.uniform(WORKSPACE[0] + 0.1, WORKSPACE[1] - 0.1, (200, 3)).astype(np.float32) for _ in range(samples)]
     quat = rotations.euler_to_quat(rng.uniform(-1, 1, (samples, 3)))
@@ -38,7 +38,7 @@ def synthetic_episode(rng, task='open_drawer', samples=2) -> dict:
             'starts': np.arange(samples + 1) * 200, 'joint_positions': np.zeros((samples, 7)),
             'gripper_open': np.ones(samples, bool), 'target_xyz': np.stack([c[0] for c in clouds]).astype(np.float64),
             'target_quat': quat, 'target_open': np.arange(samples) % 2 == 0, 'task': np.array(task),
-            'variation': np.array(1), 'seed': np.array(0)}
+            'variation': np.array(1), 'seed': np.array(seed)}
 
 
 # --- language -----------------------------------------------------------------------
@@ -168,7 +168,9 @@ def test_augmentation_keeps_target_and_orientation_on_the_points(seed):
 
 def test_a_few_steps_reduce_the_loss():
     rng = np.random.default_rng(0)
-    dataset = KeyframeDataset([synthetic_episode(rng, 'open_drawer'), synthetic_episode(rng, 'pick_up_cup')])
+    dataset = KeyframeDataset([synthetic_episode(rng, 'open_drawer', seed=5), synthetic_episode(rng, 'pick_up_cup'),
+                               synthetic_episode(rng, 'open_drawer', seed=2)])
+    assert dataset.training_seeds() == {'open_drawer': [2, 5], 'pick_up_cup': [0]}
     model = tiny_model()
     optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
     items = [dataset.item(i, rng) for i in range(len(dataset))]
@@ -186,11 +188,12 @@ def test_a_few_steps_reduce_the_loss():
 def test_checkpoint_round_trip_and_refusals(tmp_path):
     model = tiny_model().eval()
     path = tmp_path / 'agent.pt'
-    checkpoint.save(path, model, torch.optim.AdamW(model.parameters()), 7, {'seed': 0}, {})
+    checkpoint.save(path, model, torch.optim.AdamW(model.parameters()), 7, {'seed': 0}, {},
+                    {'reach_target': [3, 4]})
     raw = torch.load(path, weights_only=True)
     assert raw['step'] == 7 and raw['config']['model']['channels'] == [4, 8, 8]
     loaded, stored = checkpoint.load_model(path)
-    assert stored['step'] == 7
+    assert stored['step'] == 7 and NextBestPoseAgent.from_checkpoint(path).training_seeds == {'reach_target': [3, 4]}
     for key, value in model.state_dict().items():
         assert torch.equal(value, loaded.state_dict()[key])
 
@@ -202,6 +205,11 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
     torch.save(raw, tmp_path / 'mismatch.pt')
     with pytest.raises(checkpoint.CheckpointError, match='do not match'):
         checkpoint.load_model(tmp_path / 'mismatch.pt')
+    raw['config']['model']['channels'] = [4, 8, 8]
+    raw['training_seeds'] = {'reach_target': ['3']}
+    torch.save(raw, tmp_path / 'bad_seeds.pt')
+    with pytest.raises(checkpoint.CheckpointError, match='training_seeds'):
+        checkpoint.load(tmp_path / 'bad_seeds.pt')
     torch.save({'weights': torch.zeros(3)}, tmp_path / 'other.pt')
     with pytest.raises(checkpoint.CheckpointError, match='is not a'):
         checkpoint.load(tmp_path / 'other.pt')
@@ -209,7 +217,7 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
 
 def test_agent_predicts_a_pose_from_camera_frames(tmp_path):
     path = tmp_path / 'agent.pt'
-    checkpoint.save(path, tiny_model(), None, 0, {}, {})
+    checkpoint.save(path, tiny_model(), None, 0, {}, {}, {})
     agent = NextBestPoseAgent.from_checkpoint(path)
     intrinsics = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
     looking_down = np.eye(4)

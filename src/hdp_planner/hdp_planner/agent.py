@@ -29,15 +29,16 @@ class NextBestPose(NamedTuple):
 
 class NextBestPoseAgent:
 
-    def __init__(self, model: NextBestPoseNet, device='cpu'):
+    def __init__(self, model: NextBestPoseNet, device='cpu', training_seeds: dict | None = None):
         self.model = model.to(device).eval()
         self.device = device
+        self.training_seeds = training_seeds or {}     # task -> seeds: evaluation refuses them
 
     @classmethod
     def from_checkpoint(cls, path, device='cpu') -> NextBestPoseAgent:
         """The agent of a checkpoint written by `hdp train high-level`; CheckpointError if it is not one."""
-        model, _ = checkpoint.load_model(path, device)
-        return cls(model, device)
+        model, stored = checkpoint.load_model(path, device)
+        return cls(model, device, stored['training_seeds'])
 
     def predict(self, rgb_depth_per_camera: dict, camera_infos: dict, camera_to_world: dict,
                 instruction: str, proprio) -> NextBestPose:

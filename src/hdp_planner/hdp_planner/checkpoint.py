@@ -1,7 +1,8 @@
 """Checkpoints: plain dicts of tensors plus a JSON-able config, loadable with weights_only=True.
 
     {'format': FORMAT, 'config': {'model': ..., 'train': ...}, 'model': state dict,
-     'optimizer': state dict, 'step': int, 'metrics': {...}}
+     'optimizer': state dict, 'step': int, 'metrics': {...},
+     'training_seeds': {task: [seed, ...]}}
 
 The config rebuilds the network with no other file; loading checks every
 tensor's name and shape against that network before using any of it.
@@ -25,7 +26,8 @@ class CheckpointError(ValueError):
     """A file that is not a readable, consistent next-best-pose checkpoint."""
 
 
-def save(path, model: NextBestPoseNet, optimizer, step: int, train_config: dict, metrics: dict) -> None:
+def save(path, model: NextBestPoseNet, optimizer, step: int, train_config: dict, metrics: dict,
+         training_seeds: dict) -> None:
     """Write atomically (a crash mid-save leaves the previous checkpoint intact)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -33,7 +35,7 @@ def save(path, model: NextBestPoseNet, optimizer, step: int, train_config: dict,
                   'config': {'model': model.config.to_dict(), 'train': train_config},
                   'model': model.state_dict(),
                   'optimizer': optimizer.state_dict() if optimizer is not None else {},
-                  'step': int(step), 'metrics': metrics}
+                  'step': int(step), 'metrics': metrics, 'training_seeds': training_seeds}
     partial = path.with_name(path.name + '.partial')
     torch.save(checkpoint, partial)
     os.replace(partial, path)
@@ -50,9 +52,14 @@ def load(path) -> dict:
         raise CheckpointError(f'{path} is not a readable checkpoint (truncated or not a torch file?): {err}') from None
     if not isinstance(checkpoint, dict) or checkpoint.get('format') != FORMAT:
         raise CheckpointError(f'{path} is not a {FORMAT} checkpoint')
-    for key, kind in (('config', dict), ('model', dict), ('step', int), ('metrics', dict)):
+    for key, kind in (('config', dict), ('model', dict), ('step', int), ('metrics', dict),
+                      ('training_seeds', dict)):
         if not isinstance(checkpoint.get(key), kind):
             raise CheckpointError(f'{path}: {key!r} is missing or not a {kind.__name__}')
+    seeds = checkpoint['training_seeds']
+    if not all(isinstance(t, str) and isinstance(s, list) and all(isinstance(i, int) for i in s)
+               for t, s in seeds.items()):
+        raise CheckpointError(f'{path}: training_seeds must map task names to lists of seeds')
     return checkpoint
 
 

@@ -242,6 +242,13 @@ class KeyframeDataset:
         finally:
             kinematics.close()
 
+    def training_seeds(self) -> dict[str, list[int]]:
+        """task -> the sorted seeds of its episodes: what evaluation must stay away from."""
+        seeds: dict[str, set] = {}
+        for episode in self.episodes:
+            seeds.setdefault(str(episode['task']), set()).add(int(episode['seed']))
+        return {task: sorted(s) for task, s in sorted(seeds.items())}
+
     def __len__(self) -> int:
         return len(self.index)
 

@@ -97,7 +97,7 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
     if episodes < 1 or seed_start < 0:
         raise ValueError(f'need episodes >= 1 and seed_start >= 0, got {episodes} and {seed_start}')
     seeds = range(seed_start, seed_start + episodes)
-    check_seed_hygiene(low_levels, tasks, seeds)
+    check_seed_hygiene({'the next-best-pose agent': agent, **low_levels}, tasks, seeds)
     jobs = [(name, task, seed, phrasing) for name in low_levels for task in tasks for seed in seeds
             for phrasing in phrasings]
     records = []

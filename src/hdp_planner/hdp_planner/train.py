@@ -142,5 +142,5 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
                 metrics = {'step': step, 'validation': offline_metrics(model, val)}
                 bar.write(f'validation at step {step}:\n{format_metrics(metrics["validation"])}')
             if step % save_every == 0 or step == steps:
-                checkpoint.save(out, model, optimizer, step, train_config, metrics)
+                checkpoint.save(out, model, optimizer, step, train_config, metrics, dataset.training_seeds())
     return metrics
