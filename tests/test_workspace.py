@@ -120,6 +120,9 @@ def test_colcon_build_installs_ros_layout(tmp_path):
     bridge_share = install / 'hdp_sim_bridge' / 'share' / 'hdp_sim_bridge'
     assert (bridge_share / 'launch' / 'hdp_graph.launch.py').is_file()
     assert (bridge_share / 'config' / 'hdp_graph.yaml').is_file()
+    controller_share = install / 'hdp_controller' / 'share' / 'hdp_controller'
+    assert (controller_share / 'launch' / 'hdp_real_panda.launch.py').is_file()
+    assert (controller_share / 'config' / 'hdp_real_panda.yaml').is_file()
 
     # The ROS interface definitions ship inside hdp_msgs_py (package_data);
     # checked once the Python package itself exists.
@@ -128,3 +131,17 @@ def test_colcon_build_installs_ros_layout(tmp_path):
         site = next((install / 'hdp_msgs_py' / 'lib').glob('python3*/site-packages'))
         for msg in msgs_src.glob('interfaces/**/*.msg'):
             assert (site / 'hdp_msgs_py' / msg.relative_to(msgs_src)).is_file(), msg
+
+
+def test_real_robot_parameters_are_ones_the_nodes_declare():
+    """The untested real-robot YAML may only set parameters the sim graph's YAML (exercised by
+    the graph tests) sets for the same node; its launch file at least compiles."""
+    import yaml
+    graph = yaml.safe_load((SRC / 'hdp_sim_bridge' / 'config' / 'hdp_graph.yaml').read_text())
+    real = yaml.safe_load((SRC / 'hdp_controller' / 'config' / 'hdp_real_panda.yaml').read_text())
+    assert set(real) == {'planner_node', 'controller_node'}
+    for node, section in real.items():
+        unknown = set(section['ros__parameters']) - set(graph[node]['ros__parameters'])
+        assert not unknown, (node, unknown)
+    launch = SRC / 'hdp_controller' / 'launch' / 'hdp_real_panda.launch.py'
+    compile(launch.read_text(), str(launch), 'exec')
