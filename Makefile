@@ -34,9 +34,9 @@ $(STAMP): requirements.txt $(foreach p,$(PKGS),src/$(p)/setup.py) $(PKGSET) | $(
 test: setup
 	$(PY) -m pytest -q tests src
 
+# The whole graph on one episode: demo_out/ gets a GIF, a trajectory plot and summary.json.
 demo: setup
-	$(VENV)/bin/hdp --help
-	@echo "The full demo (sim bridge + planner + controller graph) arrives with the graph issue."
+	$(VENV)/bin/hdp demo --task reach_target --out demo_out
 
 # Build, test and colcon outputs; keeps the virtualenv.
 clean:

@@ -39,6 +39,7 @@ setup(
             'render = hdp_sim_bridge.cli:configure_render',
             'bench.sim = hdp_sim_bridge.cli:configure_bench_sim',
             'launch = hdp_sim_bridge.launch_cli:configure',
+            'demo = hdp_sim_bridge.demo:configure',
         ],
     },
 )

@@ -8,6 +8,7 @@ command exits non-zero.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -61,7 +62,7 @@ def _relay(name: str, stream, lock: threading.Lock) -> None:
             sys.stdout.flush()
 
 
-def _stop(procs: dict, say) -> None:
+def stop_nodes(procs: dict, say) -> None:
     """SIGINT every running node, then SIGTERM and SIGKILL to those that outstay the grace period."""
     for sig, grace in ((signal.SIGINT, STOP_GRACE_S), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
         running = [p for p in procs.values() if p.poll() is None]
@@ -76,6 +77,26 @@ def _stop(procs: dict, say) -> None:
                 proc.wait(timeout=grace)
             except subprocess.TimeoutExpired:
                 pass
+
+
+@contextlib.contextmanager
+def running_nodes(commands: dict[str, list[str]], output, say, env: dict | None = None):
+    """Start each node (name -> command line) and yield name -> Popen; stop them all on leaving.
+
+    ``output(name)`` is where the node's stdout and stderr go (subprocess.PIPE or an open file).
+    Each node gets a session of its own: a terminal's Ctrl-C reaches only the caller, which
+    passes it on once, on leaving (stop_nodes), however it leaves.
+    """
+    env = dict(os.environ if env is None else env, PYTHONUNBUFFERED='1')
+    procs = {}
+    try:
+        for name, command in commands.items():
+            procs[name] = subprocess.Popen(command, stdout=output(name), stderr=subprocess.STDOUT, text=True,
+                                           env=env, start_new_session=True)
+            say(f'started {name} (pid {procs[name].pid})')
+        yield procs
+    finally:
+        stop_nodes(procs, say)
 
 
 def run(args) -> int:
@@ -103,25 +124,20 @@ def run(args) -> int:
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    procs, relays = {}, []
+    relays = []
     try:
-        for name, command in commands.items():
-            # A session of its own: a terminal's Ctrl-C reaches only us, and we pass it on once.
-            procs[name] = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                           env=env, start_new_session=True)
-            relays.append(threading.Thread(target=_relay, args=(name, procs[name].stdout, lock), daemon=True))
-            relays[-1].start()
-            say(f'started {name} (pid {procs[name].pid})')
-        died = None
-        while died is None and not stop.wait(0.2):
-            died = next((name for name, p in procs.items() if p.poll() is not None), None)
-        if died is not None:
-            say(f'{died} exited with code {procs[died].returncode}; stopping the other nodes')
-        else:
-            say(f'{requested[0]}: stopping the nodes')
+        with running_nodes(commands, lambda name: subprocess.PIPE, say) as procs:
+            for name, proc in procs.items():
+                relays.append(threading.Thread(target=_relay, args=(name, proc.stdout, lock), daemon=True))
+                relays[-1].start()
+            died = None
+            while died is None and not stop.wait(0.2):
+                died = next((name for name, p in procs.items() if p.poll() is not None), None)
+            if died is not None:
+                say(f'{died} exited with code {procs[died].returncode}; stopping the other nodes')
+            else:
+                say(f'{requested[0]}: stopping the nodes')
     finally:
-        _stop(procs, say)
         for relay in relays:
             relay.join(timeout=2.0)
         for sig, handler in previous.items():

@@ -1,0 +1,295 @@
+"""`hdp demo`: segment timing bookkeeping, CPU accounting from /proc, statistics, the GIF and plot
+writers, and the command itself (bad arguments, Ctrl-C, one whole episode of the real graph)."""
+
+import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from hdp_sim_bridge import demo
+
+
+def _hdp(*args) -> list[str]:
+    return [sys.executable, '-m', 'hdp_msgs_py.cli.main', *args]
+
+
+def _env(ros_domain) -> dict:
+    return dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), OMP_NUM_THREADS='1', PYTHONUNBUFFERED='1')
+
+
+# --- domain -------------------------------------------------------------------------------------
+
+def test_domain_comes_from_the_environment_else_is_picked_in_the_safe_range():
+    assert demo.pick_domain({'ROS_DOMAIN_ID': '42'}, random.Random(0)) == (42, False)
+    assert demo.pick_domain({'ROS_DOMAIN_ID': '0'}, random.Random(0)) == (0, False)
+    picked = {demo.pick_domain({'ROS_DOMAIN_ID': ' '}, random.Random(seed)) for seed in range(50)}
+    assert all(p and d in demo.SAFE_DOMAINS for d, p in picked) and len(picked) > 10
+    with pytest.raises(ValueError, match='0..232'):
+        demo.pick_domain({'ROS_DOMAIN_ID': '300'}, random.Random(0))
+
+
+# --- segment bookkeeping --------------------------------------------------------------------------
+
+def test_segment_times_split_into_observe_predict_controller_execution():
+    log = demo.EpisodeLog(start=100.0)
+    log.gripper_goal(key=7, is_open=False)                 # the planner sends the goal first
+    first = log.nbp(101.5, key=7, xyz=(0.5, 0.1, 0.9))
+    assert log.trajectory(102.25, points=40, duration_s=1.6) is first
+    assert log.result(105.0, key=99, outcome='done') is None       # another segment's result
+    assert log.result(105.25, key=7, outcome='done') is first
+    second = log.nbp(106.0, key=8, xyz=(0.4, 0.0, 1.0))
+    log.gripper_goal(key=8, is_open=True)                  # or just after its NBP
+    log.success(108.0)
+    log.trajectory(106.5, points=30, duration_s=1.0)
+    log.result(110.0, key=8, outcome='done')
+    log.success(109.0)                                     # the first report counts
+
+    assert (first.observe_predict_s, first.controller_s, first.execution_s) == (1.5, 0.75, 3.0)
+    assert first.gripper == 'close' and first.trajectory_points == 40 and first.trajectory_duration_s == 1.6
+    assert (second.observe_predict_s, second.controller_s, second.execution_s) == (0.75, 0.5, 3.5)
+    assert second.gripper == 'open' and second.index == 2 and log.success_s == 8.0
+    assert second.to_dict()['observe_predict_s'] == 0.75 and second.to_dict()['xyz'] == [0.4, 0.0, 1.0]
+
+
+def test_a_refused_segment_has_controller_time_and_no_execution():
+    log = demo.EpisodeLog(start=0.0)
+    segment = log.nbp(2.0, key=1, xyz=(0.0, 0.0, 0.0))
+    assert log.open_segment is segment
+    log.result(2.5, key=1, outcome='failed: outside the workspace')
+    assert (segment.controller_s, segment.execution_s, segment.gripper) == (0.5, None, None)
+    assert log.open_segment is None and log.trajectory(3.0, 10, 1.0) is None
+    line = demo.segment_line(segment)
+    assert line.startswith('segment 1: NBP (0.000, 0.000, 0.000) gripper unchanged -> failed: outside')
+    assert 'controller 0.50 s, execution -' in line
+
+
+@pytest.mark.parametrize('line, verdict', [
+    ("planner_node: instruction 'open the drawer': up to 8 segments", 'started'),
+    ("planner_node: instruction 'open the drawer': task succeeded after 2 segments", 'succeeded'),
+    ("planner_node: instruction 'open the drawer': segment 1 failed", 'ended'),
+    ("planner_node: instruction 'open the drawer': 8 segments done without success", 'ended'),
+    ('planner_node: refused instruction: no word of ...', 'refused'),
+    ("planner_node: instruction 'open the box': task succeeded after 1 segments", None),
+    ("planner_node: instruction 'open the drawer' queued: it starts when segment 1 ends", None),
+    ("controller_node: segment 1.000: done", None),
+])
+def test_planner_outcome_reads_the_status_lines_about_our_instruction(line, verdict):
+    outcome = demo.planner_outcome(line, 'open the drawer')
+    assert (outcome[0] if outcome else None) == verdict
+
+
+# --- CPU --------------------------------------------------------------------------------------------
+
+def _stat(pid, ppid, utime, stime, cutime=0, cstime=0, comm='python3'):
+    return f'{pid} ({comm}) S {ppid} {pid} {pid} 0 -1 4194560 100 0 0 0 {utime} {stime} {cutime} {cstime} 20 0 4 0'
+
+
+def test_parse_stat_counts_fields_after_the_last_parenthesis():
+    assert demo.parse_stat(_stat(9, 3, 250, 50, 7, 3, comm='odd) name (x')) == (3, 310)
+
+
+def test_parse_stat_agrees_with_os_times():
+    end = time.process_time() + 0.3
+    while time.process_time() < end:
+        pass
+    ticks = os.sysconf('SC_CLK_TCK')
+    ppid, total = demo.parse_stat(Path(f'/proc/{os.getpid()}/stat').read_text())
+    times = os.times()
+    assert ppid == os.getppid()
+    assert abs(total - (times.user + times.system + times.children_user + times.children_system) * ticks) <= 3
+
+
+def test_cpu_of_a_node_includes_its_live_descendants():
+    before = {10: _stat(10, 1, 100, 20), 11: _stat(11, 10, 30, 0), 12: _stat(12, 11, 5, 5), 13: _stat(13, 1, 999, 0),
+              20: _stat(20, 1, 50, 0)}
+    # 11 exited and was waited for: its 40 ticks are in 10's cutime now; its child 12 went to init.
+    after = {10: _stat(10, 1, 200, 40, 40, 0), 12: _stat(12, 1, 5, 5), 13: _stat(13, 1, 999, 0),
+             20: _stat(20, 1, 150, 0)}
+    assert demo.tree_ticks(10, before) == 100 + 20 + 30 + 10 and demo.tree_ticks(10, after) == 280
+    assert demo.tree_ticks(30, before) is None
+    pids = {'planner_node': 10, 'controller_node': 20, 'gone': 30}
+    a, b = (demo.cpu_seconds(pids, stats, ticks_per_s=100) for stats in (before, after))
+    assert a == {'planner_node': 1.6, 'controller_node': 0.5}
+    usage = demo.cpu_usage(a, b, wall_s=2.0)
+    assert usage == {'planner_node': {'cpu_s': 1.2, 'cpu_percent': 60.0},
+                     'controller_node': {'cpu_s': 1.0, 'cpu_percent': 50.0}}
+
+
+def test_read_stats_skips_what_is_not_a_process(tmp_path):
+    (tmp_path / '17').mkdir()
+    (tmp_path / '17' / 'stat').write_text(_stat(17, 1, 1, 1))
+    (tmp_path / '18').mkdir()                          # exited between listing and reading
+    (tmp_path / 'self').mkdir()
+    assert demo.read_stats(tmp_path) == {17: _stat(17, 1, 1, 1)}
+
+
+# --- figures ----------------------------------------------------------------------------------------
+
+def _record(success, segment_times, cpu_s, wall_s=10.0, success_s=8.0):
+    return {'success': success, 'success_s': success_s if success else None, 'wall_s': wall_s,
+            'segments': [dict(zip(demo.STAGES, t)) for t in segment_times],
+            'cpu': {name: {'cpu_s': c} for name, c in zip(demo.NODES, cpu_s)}}
+
+
+def test_stats_and_figures_over_episodes():
+    assert demo.stats([3.0, 1.0, 2.0, None]) == {'n': 3, 'p50': 2.0, 'p95': 2.9, 'mean': 2.0, 'max': 3.0}
+    assert demo.stats([])['p50'] is None
+    episodes = [_record(True, [(1.0, 0.5, 3.0), (2.0, 0.7, None)], (5.0, 1.0, 2.0)),
+                _record(False, [(3.0, 0.9, 4.0)], (5.0, 1.0, 2.0), wall_s=30.0)]
+    figs = demo.figures(episodes)
+    assert figs['observe_predict_s']['n'] == 3 and figs['observe_predict_s']['p50'] == 2.0
+    assert figs['execution_s']['n'] == 2 and figs['execution_s']['max'] == 4.0
+    assert figs['episode_s'] == demo.stats([8.0])                  # successful episodes only
+    assert figs['cpu']['sim_bridge_node'] == {'cpu_s': 10.0, 'cpu_percent': 25.0}
+    assert (figs['episodes'], figs['succeeded']) == (2, 1)
+    table = demo.format_figures(figs)
+    assert '1 of 2 episodes succeeded, 3 segments' in table
+    assert '| observe + predict (result -> NBP) | 3 | 2.00 | 2.90 | 2.00 | 3.00 |' in table
+    assert '| sim_bridge_node | 10.0 | 25 |' in table
+
+
+# --- writers ----------------------------------------------------------------------------------------
+
+def test_gif_replays_sim_time_faster_and_is_a_valid_animation(tmp_path):
+    assert demo.gif_durations_ms([10.0, 10.5, 11.0], speedup=2.0, last_ms=900) == [250, 250, 900]
+    frames = [np.full((48, 64, 3), 40 * i, np.uint8) for i in range(4)]
+    captioned = demo.caption(frames[3], 'reach_target t=1.0s')
+    band = captioned[:18]
+    assert np.median(band) < 120 / 2 and band.max() > 200 and np.all(captioned[18:] == 120)   # dark band, white text
+    assert np.all(frames[3] == 120)                                                        # the frame is not changed
+    demo.write_gif(frames, [100, 100, 100, 500], tmp_path / 'a.gif')
+    with Image.open(tmp_path / 'a.gif') as gif:
+        assert gif.format == 'GIF' and gif.n_frames == 4 and gif.size == (64, 48)
+        gif.seek(3)
+        assert np.asarray(gif.convert('RGB'))[40, 10].mean() == pytest.approx(120, abs=3)
+    with pytest.raises(ValueError, match='no frames'):
+        demo.write_gif([], [], tmp_path / 'b.gif')
+
+
+def test_ee_positions_are_the_sims_own_forward_kinematics():
+    from hdp_msgs_py import panda
+    from hdp_sim_bridge.world import PandaWorld
+    q = np.array([panda.HOME, panda.HOME + np.array([0.3, 0.2, -0.1, 0.2, 0.1, -0.2, 0.4])])
+    with PandaWorld() as world:
+        expected = []
+        for row in q:
+            world.reset_arm(row)
+            expected.append(world.ee_pose()[0])
+    np.testing.assert_allclose(demo.ee_positions(q), expected, atol=1e-6)
+
+
+def test_wall_to_sim_maps_events_through_joint_state_samples():
+    np.testing.assert_allclose(demo.wall_to_sim([0.5, 1.5, 9.0], [0.0, 1.0, 2.0], [5.0, 5.0, 6.0]), [5.0, 5.5, 6.0])
+
+
+def test_trajectory_plot_is_a_png(tmp_path):
+    from hdp_msgs_py import panda
+    log = demo.EpisodeLog(start=0.0)
+    wall = np.linspace(0.1, 6.0, 120)
+    q = np.tile(panda.HOME, (120, 1))              # at home, then turning joint 1
+    q[60:, 0] = np.linspace(0.0, 0.8, 60)
+    segment = log.nbp(1.0, key=1, xyz=(0.5, 0.0, 1.0))
+    log.gripper_goal(1, True)
+    log.trajectory(1.5, 50, 2.0)
+    log.result(4.0, 1, 'done')
+    demo.write_plot(wall, wall * 0.9 + 3.0, q, [segment], 3.5, 'test', tmp_path / 'p.png')
+    with Image.open(tmp_path / 'p.png') as png:
+        assert png.format == 'PNG' and png.size == (1200, 480)
+        pixels = np.asarray(png.convert('RGB'))
+    assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 50     # lines and text, not an empty canvas
+
+
+# --- the command --------------------------------------------------------------------------------------
+
+def test_unknown_task_exits_2_before_starting_anything(tmp_path, ros_domain):
+    proc = subprocess.run(_hdp('demo', '--task', 'nonsense', '--out', str(tmp_path / 'out')),
+                          env=_env(ros_domain), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "hdp demo: unknown task 'nonsense'; tasks: reach_target, pick_up_cup, open_drawer" in proc.stderr
+    assert 'started' not in proc.stdout and not (tmp_path / 'out').exists()
+
+
+def _parse(*args):
+    import argparse
+    parser = argparse.ArgumentParser()
+    demo.configure(parser)
+    return parser.parse_args(args)
+
+
+def test_argument_problems_are_found_before_anything_starts(tmp_path):
+    tasks = ('reach_target', 'open_drawer')
+    assert demo.argument_problem(_parse('--task', 'open_drawer'), tasks) is None
+    for args, problem in ((('--task', 'open_door'), "unknown task 'open_door'; tasks: reach_target, open_drawer"),
+                          (('--episodes', '0'), '--episodes >= 1'), (('--seed', '-1'), '--seed must be >= 0'),
+                          (('--timeout', '0'), '--timeout > 0'), (('--instruction', '  '), '--instruction is empty'),
+                          (('--params-file', str(tmp_path / 'no.yaml')), 'no parameter file')):
+        assert problem in demo.argument_problem(_parse('--task', 'reach_target', *args), tasks), args
+    with pytest.raises(SystemExit) as exit_:
+        _parse('--task', 'reach_target', '--method', 'teleport')
+    assert exit_.value.code == 2
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f'/proc/{pid}/stat').read_text()
+    except FileNotFoundError:
+        return False
+    return state[state.rindex(')') + 2] != 'Z'
+
+
+def _node_pids(text: str) -> list[int]:
+    return [int(p) for p in re.findall(r'\[demo\] started \w+ \(pid (\d+)\)', text)]
+
+
+def test_ctrl_c_stops_every_node_and_exits_130(tmp_path, ros_domain):
+    proc = subprocess.Popen(_hdp('demo', '--task', 'reach_target', '--out', str(tmp_path)), env=_env(ros_domain),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if 'waiting for the nodes' in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    lines += proc.stdout.readlines()
+    proc.wait(timeout=60)
+    text = ''.join(lines)
+    assert proc.returncode == 130, text
+    assert '[demo] SIGINT: stopped the nodes' in text
+    pids = _node_pids(text)
+    assert len(pids) == 3 and not any(_alive(p) for p in pids), text
+
+
+def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
+    out = tmp_path / 'demo'
+    proc = subprocess.run(_hdp('demo', '--task', 'reach_target', '--seed', '1000', '--out', str(out)),
+                          env=_env(ros_domain), capture_output=True, text=True, timeout=240)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 0, text
+    assert f'ROS_DOMAIN_ID={ros_domain} (from the environment)' in text
+    assert re.search(r'segment 1: NBP \(.+\) gripper \w+ -> done at .+ observe\+predict [\d.]+ s', text), text
+    pids = _node_pids(text)
+    assert len(pids) == 3 and not any(_alive(p) for p in pids)
+
+    summary = json.loads((out / 'summary.json').read_text())
+    episode, = summary['episodes']
+    assert episode['success'] and episode['seed'] == 1000 and episode['success_s'] > 0
+    assert f"episode reach_target seed 1000 variation {episode['variation']}: {episode['instruction']!r}" in text
+    for segment in episode['segments']:
+        assert all(segment[stage] > 0 for stage in demo.STAGES), segment
+    assert set(episode['cpu']) == set(demo.NODES) and all(c['cpu_s'] > 0 for c in episode['cpu'].values())
+    assert summary['figures']['episode_s']['n'] == 1
+    with Image.open(out / episode['gif']) as gif:
+        assert gif.n_frames >= 3 and gif.size == (demo.GIF_WIDTH, 240)
+    with Image.open(out / episode['plot']) as png:
+        assert png.format == 'PNG'
+    assert (out / episode['plot']).stat().st_size > 30_000
+    assert all((out / 'logs' / f'{name}.log').is_file() for name in demo.NODES)
