@@ -248,7 +248,10 @@ def test_controller_pairs_the_gripper_goal_by_stamp_and_reports_done():
     controller.on_joint_state(joint_state_msg(end, fingers=(0.0, 0.0)))
     out = controller.step(30.2)
     assert _kinds(out) == ['info', 'result'] and out[1].msg.frame_id == 'done' and out[1].msg.stamp.sec == 3
-    assert controller.commanded_open is False
+    # A simulator reset opens the hand behind the controller's back: the next segment reads the fingers.
+    controller.on_joint_state(joint_state_msg(end, fingers=(0.04, 0.04)))
+    controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=5), now_s=31.0)
+    assert 'gripper stays open' in controller.step(32.0)[0].msg
 
 
 def test_controller_without_a_gripper_goal_keeps_the_gripper_after_a_short_wait():

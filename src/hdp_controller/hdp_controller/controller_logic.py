@@ -111,7 +111,9 @@ def arm_state(msg, arm_joints, finger_joints) -> ArmState:
 
 
 def measured_open(width: float) -> bool:
-    """The gripper's state before the controller has commanded it: open when (nearly) fully open."""
+    """The gripper's state from its fingers: open when (nearly) fully open. Measured at every
+    segment, not remembered, so a simulator reset or a hand on the gripper cannot mislead it
+    (a grasped object is narrower than the open width)."""
     return width >= panda.GRIPPER_OPEN_WIDTH - 0.005
 
 
@@ -233,7 +235,6 @@ class SegmentController:
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
         self.state: ArmState | None = None
         self.joint_state_problem = ''                # why the last /joint_states was unusable
-        self.commanded_open: bool | None = None      # None until the first command: measured then
         self.depth = self.info = None
         self.transforms: dict = {}                   # child frame -> TransformStamped, from /tf_static
         self.gripper_goals: dict[int, bool] = {}     # NBP stamp (ns) -> open
@@ -290,21 +291,20 @@ class SegmentController:
         if self.state is None:
             problem = f' ({self.joint_state_problem})' if self.joint_state_problem else ''
             return self._refuse(stamp, f'no usable /joint_states received yet{problem}')
-        if self.commanded_open is None:
-            self.commanded_open = measured_open(self.state.gripper_width)
+        is_open = measured_open(self.state.gripper_width)
         out = []
         if goal_open is None:
             out.append(Out('info', f'segment {stamp_label(stamp)}: no gripper goal with its stamp; '
-                                   f'the gripper stays {"open" if self.commanded_open else "closed"}'))
+                                   f'the gripper stays {"open" if is_open else "closed"}'))
         try:
             points = self._points() if self.needs_points else np.zeros((0, 3), np.float32)
-            request = segment_request(self.state, self.commanded_open, pending.goal,
-                                      self.commanded_open if goal_open is None else goal_open, points)
+            request = segment_request(self.state, is_open, pending.goal, is_open if goal_open is None else goal_open,
+                                      points)
             trajectory, plan = plan_segment(self.policy, request, self.arm_joints, self.velocity_scale)
         except SegmentRefused as err:
             return out + self._refuse(stamp, str(err))
         duration = conversions.duration_to_seconds(trajectory.points[-1].time_from_start)
-        act = goal_open if goal_open is not None and goal_open != self.commanded_open else None
+        act = goal_open if goal_open is not None and goal_open != is_open else None
         self.running = (stamp, SegmentExecution(np.asarray(trajectory.points[-1].positions), duration, now_s,
                                                 self.segment_timeout_s, act))
         x, y, z = pending.goal[:3]
@@ -318,7 +318,6 @@ class SegmentController:
         update = execution.update(now_s, self.state)
         out = []
         if update.send_gripper:
-            self.commanded_open = execution.gripper_open
             out.append(Out('gripper', gripper_command(execution.gripper_open, self.finger_joints)))
         if update.result is not None:
             self.running = None
