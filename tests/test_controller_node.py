@@ -194,12 +194,19 @@ def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_sett
 
 
 def test_segment_timeouts_and_no_gripper_action():
-    from hdp_controller.controller_logic import SegmentExecution
+    from hdp_controller.controller_logic import BLOCKED_STILL_S, SegmentExecution
     goal = panda.HOME + 0.2
+    moving = np.full(7, 0.05)
     stuck = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
-    assert stuck.update(2.9, _state(goal + 0.1)).result is None
-    result = stuck.update(3.1, _state(goal + 0.1)).result
-    assert result.startswith('failed: the arm did not settle') and '0.100 rad' in result
+    assert stuck.update(2.9, _state(goal + 0.1, moving)).result is None
+    result = stuck.update(3.1, _state(goal + 0.1, moving)).result
+    assert result.startswith('failed: the arm did not come to rest') and '0.100 rad' in result
+    # Still but short (a drawer's end stop): done once it has been still for BLOCKED_STILL_S.
+    blocked = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    assert blocked.update(1.2, _state(goal + 0.03)).result is None
+    assert blocked.update(1.2 + BLOCKED_STILL_S / 2, _state(goal + 0.03)).result is None
+    assert blocked.update(1.2 + BLOCKED_STILL_S, _state(goal + 0.03)).result == 'done'
+    assert blocked.short_by == pytest.approx(0.03)
     assert SegmentExecution(goal, 1.0, 0.0, 2.0, None).update(1.5, _state(goal)) == (False, 'done')
     dead_gripper = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
     assert dead_gripper.update(1.0, _state(goal, width=0.0)).send_gripper

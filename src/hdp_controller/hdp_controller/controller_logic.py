@@ -35,6 +35,7 @@ from .trajectory import TrajectoryError, joint_trajectory
 
 GOAL_TOLERANCE = 0.02          # rad: max joint error at the last waypoint that counts as arrived
 STILL_VELOCITY = 0.02          # rad/s: max joint speed that counts as still (the sim settles < 0.01)
+BLOCKED_STILL_S = 0.5          # s still short of the last waypoint after the trajectory's end: blocked by contact
 GRIPPER_TOLERANCE = 0.002      # m of width from the target that counts as reached
 GRIPPER_MOVED = 0.001          # m of width change that shows the fingers responded
 GRIPPER_STILL_S = 0.2          # s without width change after moving: closed on an object
@@ -167,6 +168,10 @@ class SegmentExecution:
     timeout_s: time after the trajectory's end for the arm to settle.
     gripper_open: the action after arriving, or None to leave the gripper as it is.
     Times are seconds on the node's clock (sim time under use_sim_time).
+
+    The arm has arrived when, after the trajectory's end, it is still at the last waypoint,
+    or still anywhere for BLOCKED_STILL_S: in contact tasks a drawer's end stop or a hinge
+    holds it short (``short_by`` then says how far, in rad), as it held the experts.
     """
 
     def __init__(self, goal_q, duration_s: float, start_s: float, timeout_s: float, gripper_open: bool | None):
@@ -175,7 +180,9 @@ class SegmentExecution:
         self.gripper_open = gripper_open
         self._gripper_start: tuple[float, float] | None = None      # (time, width) when commanded
         self._last_change: tuple[float, float] | None = None        # (time, width) of the last motion
+        self._still_since: float | None = None
         self.arrived_s: float | None = None
+        self.short_by: float | None = None
 
     def update(self, now_s: float, state: ArmState) -> Update:
         if self.arrived_s is None:
@@ -186,14 +193,18 @@ class SegmentExecution:
         error = float(np.max(np.abs(state.q - self.goal_q)))
         speed = float(np.max(np.abs(state.qd)))
         elapsed = now_s - self.start_s
-        if elapsed >= self.duration_s and error <= GOAL_TOLERANCE and speed <= STILL_VELOCITY:
+        still = elapsed >= self.duration_s and speed <= STILL_VELOCITY
+        self._still_since = (self._still_since or now_s) if still else None
+        blocked = still and now_s - self._still_since >= BLOCKED_STILL_S
+        if still and (error <= GOAL_TOLERANCE or blocked):
             self.arrived_s = now_s
+            self.short_by = error if error > GOAL_TOLERANCE else None
             if self.gripper_open is None:
                 return Update(result=topics.SEGMENT_DONE)
             self._gripper_start = self._last_change = (now_s, state.gripper_width)
             return Update(send_gripper=True)
         if elapsed > self.duration_s + self.timeout_s:
-            return Update(result=f'{topics.SEGMENT_FAILED}the arm did not settle at the last waypoint within '
+            return Update(result=f'{topics.SEGMENT_FAILED}the arm did not come to rest within '
                                  f'{self.timeout_s:.1f} s of the trajectory\'s end (max joint error '
                                  f'{error:.3f} rad, speed {speed:.3f} rad/s)')
         return Update()
@@ -322,7 +333,9 @@ class SegmentController:
         if update.result is not None:
             self.running = None
             kind = 'info' if update.result == topics.SEGMENT_DONE else 'error'
-            out += [Out(kind, f'segment {stamp_label(stamp)}: {update.result}'),
+            short = (f' (the arm stopped {execution.short_by:.3f} rad short of the last waypoint: blocked)'
+                     if execution.short_by is not None else '')
+            out += [Out(kind, f'segment {stamp_label(stamp)}: {update.result}{short}'),
                     Out('result', Header(stamp=stamp, frame_id=update.result))]
         return out
 
