@@ -156,17 +156,51 @@ def test_camera_timeout_stops_the_instruction_and_names_the_camera():
     assert loop.instruction is None and loop.agent.calls == []
 
 
-def test_a_dead_controller_is_reported_and_the_next_instruction_recovers():
+def test_a_missing_result_is_reported_and_the_loop_re_observes_and_sends_a_fresh_nbp():
+    loop = _loop()
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    lost = loop.step(0.1, 1)[1].msg.header.stamp
+    loop.gripper_open = True                                  # as if an earlier segment had opened it
+    assert loop.step(10.1, 2) == []                           # within result_timeout_s
+    loop.observations.on_joint_state(JointState(header=Header(stamp=_stamp(1.5)), name=list(panda.ARM_JOINTS +
+                                     panda.FINGER_JOINTS), position=[*panda.HOME, 0.04, 0.04]))
+    out = loop.step(10.2, 3)
+    assert _texts(out, 'error') == ['segment 1: no result from the controller within 10.0 s '
+                                    '(is controller_node running?); re-observing']
+    assert loop.instruction == 'open the drawer' and loop.segment is None
+    assert loop.step(10.3, 4) == []                           # the frames are from before the timeout
+    feed_frames(loop.observations, 2.0)                       # fingers at 0.08 m: open
+    out = loop.step(10.4, 5)
+    assert [k for k, _ in out][:2] == ['gripper_goal', 'nbp'] and 'segment 2: sent' in _texts(out)[0]
+    assert out[1].msg.header.stamp != lost
+    assert loop.agent.calls[1][4][1] is True                  # the gripper state read from the fingers again
+    assert loop.on_result(_result(lost), 11.0) == []          # the lost segment's late result is ignored
+    assert _texts(loop.on_result(_result(out[1].msg.header.stamp), 12.0))[0].startswith('segment 2: pose')
+
+
+def test_a_missing_result_on_the_last_segment_ends_the_instruction_after_a_last_look():
+    loop = _loop(max_segments=1)
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    loop.on_success(False)
+    assert _texts(loop.step(0.1, 1)) == ['segment 1: sent pose (0.500, 0.100, 0.900) gripper close (confidence 0.75)']
+    assert _texts(loop.step(10.2, 2), 'error') == ['segment 1: no result from the controller within 10.0 s '
+                                                   '(is controller_node running?)']
+    loop.on_success(True)                                     # the lost segment finished the task after all
+    assert _texts(loop.step(10.3, 3)) == ["instruction 'open the drawer': task succeeded after 1 segments"]
+
+
+def test_a_missing_result_lets_a_queued_instruction_start():
     loop = _loop()
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
     loop.step(0.1, 1)
+    loop.on_instruction('pick up the cup', 1.0)
     out = loop.step(10.2, 2)
-    assert 'no result from the controller within 10.0 s (is controller_node running?)' in _texts(out, 'error')[0]
-    assert loop.instruction is None
-    loop.on_instruction('open the drawer', 20.0)
-    feed_frames(loop.observations, 2.0)
-    assert [k for k, _ in loop.step(20.1, 3)][:2] == ['gripper_goal', 'nbp']
+    assert _texts(out) == ['segment 1: no result from the controller within 10.0 s (is controller_node running?)',
+                           "instruction 'open the drawer': replaced by a new instruction",
+                           "instruction 'pick up the cup': up to 3 segments"]
 
 
 def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_the_result():
@@ -200,7 +234,7 @@ def tiny_checkpoint(tmp_path):
     model = NextBestPoseNet(ModelConfig(vocabulary=tuple(language.task_vocabulary()), grid_size=8,
                                         channels=(4, 8, 8), language_dim=16, head_hidden=32))
     path = tmp_path / 'tiny_agent.pt'
-    checkpoint.save(path, model, None, 0, {}, {})
+    checkpoint.save(path, model, None, 0, {}, {}, training_seeds={})
     return path
 
 

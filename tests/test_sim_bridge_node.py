@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hdp_sim_bridge.bridge import gripper_target, parse_reset
+from hdp_sim_bridge.bridge import gripper_target, parse_cameras, parse_reset
 
 
 def test_bridge_node_end_to_end(ros_domain):
@@ -60,3 +60,14 @@ def test_gripper_commands_are_validated():
         gripper_target(conversions.build_joint_trajectory(names, [[0.09, 0.09]], [0.5]))
     with pytest.raises(ValueError, match='must name'):
         gripper_target(conversions.build_joint_trajectory(['a', 'b'], [[0.0, 0.0]], [0.5]))
+
+
+def test_camera_selections_are_validated_and_keep_the_cameras_order():
+    known = ('front', 'side')
+    assert parse_cameras('front,side', known) == ('front', 'side')
+    assert parse_cameras(' side , front ', known) == ('front', 'side')
+    assert parse_cameras('side', known) == ('side',)
+    assert parse_cameras('', known) == parse_cameras('  ', known) == ()
+    for bad in ('top', 'front,top', 'front,,side', 'front side', 'FRONT'):
+        with pytest.raises(ValueError, match='unknown camera'):
+            parse_cameras(bad, known)

@@ -18,6 +18,7 @@ CAMERAS = ('front', 'side')
 SIM_RESET = '/hdp/sim/reset'          # std_msgs/String JSON {"task", "seed", "variation"}
 SIM_EPISODE = '/hdp/sim/episode'      # std_msgs/String JSON of the running episode (latched)
 SIM_SUCCESS = '/hdp/sim/success'      # std_msgs/Bool: the task's success condition, 2 Hz
+SIM_CAMERAS = '/hdp/sim/cameras'      # std_msgs/String "front,side": the cameras that publish (fault injection)
 
 # Planner <-> controller, one segment at a time (see the hdp_planner and hdp_controller READMEs).
 # The NBP's header.stamp is the segment's key: its gripper goal carries the same stamp, and

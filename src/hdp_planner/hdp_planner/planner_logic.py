@@ -147,7 +147,9 @@ class PlannerLoop:
     """One instruction at a time, as a state machine the node drives with step() and messages.
 
     idle (no instruction) -> observing (waiting for fresh frames, then predicting) ->
-    waiting (a segment sent, its result due) -> observing ... -> idle. A new instruction
+    waiting (a segment sent, its result due) -> observing ... -> idle. A result that does not
+    come within result_timeout_s is reported and the loop observes again: the segment counts
+    against the budget, and a restarted controller takes the next one. A new instruction
     while observing replaces the running one; while waiting, it starts when the result
     (or its timeout) comes. Every stop says why on /hdp/status.
     """
@@ -207,11 +209,7 @@ class PlannerLoop:
         if self.instruction is None:
             return []
         if self.segment is not None:
-            if now_s <= self.deadline_s:
-                return []
-            return [Out('error', f'segment {self.segment.index}: no result from the controller within '
-                                 f'{self.result_timeout_s:.1f} s (is controller_node running?)')] + self._stop(
-                'no segment result', now_s)
+            return [] if now_s <= self.deadline_s else self._result_timed_out(now_s)
         if self.success_heard and self.success:
             return self._stop(f'task succeeded after {self.count} segments', now_s, error=False)
         awaiting_success = self.success_heard and self.success is None
@@ -229,6 +227,20 @@ class PlannerLoop:
             return self._stop(f'{subject}timed out after {self.camera_timeout_s:.1f} s '
                               f'(no fresh {", ".join(waiting_for)})', now_s)
         return self._predict_and_send(now_s, now_ns)
+
+    def _result_timed_out(self, now_s: float) -> list[Out]:
+        """Report the missing result and go on: re-observe and send a fresh NBP while the budget lasts.
+
+        A controller that died mid-segment (or was restarted) then only costs that segment. What
+        the lost segment did is unknown, so the gripper's state is read from the fingers again.
+        """
+        segment, self.segment, self.gripper_open = self.segment, None, None
+        line = (f'segment {segment.index}: no result from the controller within {self.result_timeout_s:.1f} s '
+                f'(is controller_node running?)')
+        if self.queued is not None:
+            return [Out('error', line)] + self._stop('replaced by a new instruction', now_s, error=False)
+        self._observe(now_s)
+        return [Out('error', line + ('; re-observing' if self.count < self.max_segments else ''))]
 
     def _predict_and_send(self, now_s: float, now_ns: int) -> list[Out]:
         try:

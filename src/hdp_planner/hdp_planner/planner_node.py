@@ -29,7 +29,7 @@ class PlannerNode(ros.Node):
         self.declare_parameter('checkpoint', '')              # '' = models/hdp_nbp_agent.pt
         self.declare_parameter('max_segments', 8)
         self.declare_parameter('camera_timeout_s', 5.0)        # for fresh frames from both cameras
-        self.declare_parameter('result_timeout_s', 60.0)       # for the controller's segment result
+        self.declare_parameter('result_timeout_s', 60.0)       # for a segment result; then the next segment
         self.declare_parameter('joint_prefix', 'panda')        # 'fr3' for an FR3
         p = {name: self.get_parameter(name).value for name in (
             'checkpoint', 'max_segments', 'camera_timeout_s', 'result_timeout_s', 'joint_prefix')}

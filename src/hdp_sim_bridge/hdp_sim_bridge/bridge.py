@@ -38,6 +38,17 @@ def parse_reset(text: str) -> dict:
     return request
 
 
+def parse_cameras(text: str, known) -> tuple[str, ...]:
+    """The cameras a /hdp/sim/cameras request keeps publishing: comma-separated names of ``known``,
+    '' for none. Anything else is refused whole, so a typo never silences a camera by accident."""
+    names = [name.strip() for name in text.split(',')] if text.strip() else []
+    bad = [name for name in names if name not in known]
+    if bad:
+        raise ValueError(f'unknown camera(s) {bad} in {text[:80]!r}; cameras: {", ".join(known)} '
+                         f'(comma-separated, "" for none)')
+    return tuple(name for name in known if name in names)
+
+
 def gripper_target(msg) -> bool:
     """Whether a gripper JointTrajectory (finger joints, m per finger) asks to open."""
     names, positions, _, _ = conversions.parse_joint_trajectory(msg)
@@ -53,6 +64,7 @@ class SimBridge:
     def __init__(self, width: int = 640, height: int = 480):
         self.world = PandaWorld()
         self.cameras = default_cameras(width, height)
+        self.publishing = tuple(self.cameras)     # cameras whose frames go out; /hdp/sim/cameras stops some
         self.task = None
         self.episode: dict = {}
         self.trajectory = None
@@ -64,6 +76,11 @@ class SimBridge:
         self.episode = {'task': task_name, 'seed': seed, 'variation': variation,
                         'instruction': task.instruction(rng)}
         return self.episode
+
+    def select_cameras(self, text: str) -> tuple[str, ...]:
+        """Keep only the cameras named in ``text`` publishing (parse_cameras); the others go silent."""
+        self.publishing = parse_cameras(text, tuple(self.cameras))
+        return self.publishing
 
     @property
     def sim_time(self) -> float:

@@ -51,6 +51,7 @@ class SimBridgeNode(ros.Node):
         self.create_subscription(JointTrajectory, topics.ARM_TRAJECTORY, self._on_arm, 10)
         self.create_subscription(JointTrajectory, topics.GRIPPER_TRAJECTORY, self._on_gripper, 10)
         self.create_subscription(String, topics.SIM_RESET, self._on_reset, 10)
+        self.create_subscription(String, topics.SIM_CAMERAS, self._on_cameras, 10)
 
         self._reset(p['task'], p['seed'], None if p['variation'] < 0 else p['variation'])
         self._tf_static.publish(self.bridge.tf_static())
@@ -75,6 +76,15 @@ class SimBridgeNode(ros.Node):
             self._say(f'rejected reset: {err}', error=True)
             return
         self._reset(request['task'], request.get('seed', 0), request.get('variation'))
+
+    def _on_cameras(self, msg):
+        try:
+            publishing = self.bridge.select_cameras(msg.data)
+        except ValueError as err:
+            self._say(f'rejected camera selection: {err}', error=True)
+            return
+        stopped = [name for name in self.bridge.cameras if name not in publishing]
+        self._say(f'cameras publishing: {", ".join(publishing) or "none"}; stopped: {", ".join(stopped) or "none"}')
 
     def _on_arm(self, msg):
         try:
@@ -106,9 +116,8 @@ class SimBridgeNode(ros.Node):
                 self._clock_pub.publish(self.bridge.clock())
                 self._joints.publish(self.bridge.joint_state())
             if self._camera_every and self._steps % self._camera_every == 0:
-                for name, (color, depth, info) in self._cameras.items():
-                    images = self.bridge.camera_messages(name)
-                    for publisher, message in zip((color, depth, info), images):
+                for name in self.bridge.publishing:
+                    for publisher, message in zip(self._cameras[name], self.bridge.camera_messages(name)):
                         publisher.publish(message)
 
     def destroy_node(self):
