@@ -179,6 +179,19 @@ def test_a_missing_result_is_reported_and_the_loop_re_observes_and_sends_a_fresh
     assert _texts(loop.on_result(_result(out[1].msg.header.stamp), 12.0))[0].startswith('segment 2: pose')
 
 
+def test_a_new_instruction_reads_the_gripper_from_the_fingers_not_the_last_goal():
+    loop = _loop()
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    stamp = loop.step(0.1, 1)[1].msg.header.stamp                 # the fake agent: close
+    loop.on_result(_result(stamp), 1.0)
+    assert loop.gripper_open is False
+    loop.on_instruction('open the drawer', 2.0)                   # e.g. after a sim reset: hand open
+    feed_frames(loop.observations, 3.0)                           # fingers at 0.08 m
+    loop.step(2.1, 2)
+    assert loop.agent.calls[1][4][1] is True
+
+
 def test_a_missing_result_on_the_last_segment_ends_the_instruction_after_a_last_look():
     loop = _loop(max_segments=1)
     feed_frames(loop.observations, 1.0)

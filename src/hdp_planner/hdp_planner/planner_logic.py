@@ -166,7 +166,7 @@ class PlannerLoop:
         self.count = 0                            # segments sent for this instruction
         self.deadline_s = 0.0
         self.since_ns = 0
-        self.gripper_open: bool | None = None     # the last goal sent; None: not commanded yet
+        self.gripper_open: bool | None = None     # the last goal reached; None: read the fingers
         self.success_heard = False                # a robot without /hdp/sim/success never sets it
         self.success: bool | None = None          # since the last segment ended; None: not yet heard
         self._last_stamp_ns = 0
@@ -266,7 +266,9 @@ class PlannerLoop:
 
     def _begin(self, instruction: str, now_s: float) -> list[Out]:
         replaced = self.instruction
-        self.instruction, self.count = instruction, 0
+        # Between instructions the world may have been reset or the hand moved by someone
+        # else: the gripper's state is read from the fingers again, not carried over.
+        self.instruction, self.count, self.gripper_open = instruction, 0, None
         self._observe(now_s)
         note = f' (replaces {replaced!r})' if replaced is not None else ''
         return [Out('info', f'instruction {instruction!r}: up to {self.max_segments} segments{note}')]
