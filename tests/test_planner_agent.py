@@ -17,7 +17,7 @@ from hdp_planner import checkpoint, language, rotations, voxels
 from hdp_planner.agent import NextBestPoseAgent
 from hdp_planner.dataset import KeyframeDataset, augment
 from hdp_planner.model import ModelConfig, NextBestPoseNet, proprio_vector
-from hdp_planner.train import losses, training_batch
+from hdp_planner.train import losses, train, training_batch
 from hdp_sim_bridge.tasks import TASKS
 
 torch.set_num_threads(1)
@@ -213,6 +213,40 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
     torch.save({'weights': torch.zeros(3)}, tmp_path / 'other.pt')
     with pytest.raises(checkpoint.CheckpointError, match='is not a'):
         checkpoint.load(tmp_path / 'other.pt')
+
+
+def test_train_continues_refuses_other_options_and_fine_tunes_with_the_union_of_seeds(tmp_path):
+    data = tmp_path / 'episodes'
+    collected = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'collect', '--tasks', 'reach_target',
+                                '--episodes', '1', '--seed-start', '21', '--out', str(data), '--width', '64',
+                                '--height', '48'], capture_output=True, text=True, timeout=300)
+    assert collected.returncode == 0, collected.stderr
+    config = ModelConfig(vocabulary=tuple(language.task_vocabulary()), **TINY)
+    options = dict(batch=2, model_config=config, cache=tmp_path / 'cache', save_every=1, log=lambda _: None,
+                   progress=False)
+    out = tmp_path / 'agent.pt'
+    train(data, out, steps=2, **options)
+    assert checkpoint.load(out)['step'] == 2 and checkpoint.load(out)['training_seeds'] == {'reach_target': [21]}
+    logged = []
+    train(data, out, steps=2, **{**options, 'log': logged.append})
+    assert 'continuing' in logged[0] and 'from step 2' in logged[0]
+    with pytest.raises(checkpoint.CheckpointError, match='train.steps: 2 -> 3'):
+        train(data, out, steps=3, **options)
+
+    start = checkpoint.load(out)                      # as if trained on more seeds than this data holds
+    start['training_seeds'] = {'reach_target': [21, 500], 'open_box': [7]}
+    torch.save(start, tmp_path / 'start.pt')
+    tuned = tmp_path / 'tuned.pt'
+    train(data, tuned, steps=1, **options, init=tmp_path / 'start.pt')
+    stored = checkpoint.load(tuned)
+    assert stored['training_seeds'] == {'open_box': [7], 'reach_target': [21, 500]}
+    assert stored['config']['train']['init'] == {'path': str(tmp_path / 'start.pt'), 'step': 2}
+    assert torch.equal(stored['optimizer']['state'][0]['step'], torch.tensor(1.0))    # a fresh optimiser
+    with pytest.raises(checkpoint.CheckpointError, match='train.init'):
+        train(data, tuned, steps=1, **options)                                        # continued without --init
+    other = ModelConfig(vocabulary=tuple(language.task_vocabulary()), **{**TINY, 'head_hidden': 16})
+    with pytest.raises(checkpoint.CheckpointError, match='another model config'):
+        train(data, tmp_path / 'x.pt', steps=1, **{**options, 'model_config': other}, init=out)
 
 
 def test_agent_predicts_a_pose_from_camera_frames(tmp_path):

@@ -262,8 +262,18 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
                            '--init', str(out)],
                           text=True, capture_output=True, timeout=300)
     assert fine.returncode == 0, fine.stderr
-    assert checkpoint.read(tuned)['training']['init'] == {'path': str(out), 'step': 4,
-                                                          'wall_time_s': checkpoint.read(out)['training']['wall_time_s']}
+    assert checkpoint.read(tuned)['training']['init'] == {
+        'path': str(out), 'step': 4, 'wall_time_s': checkpoint.read(out)['training']['wall_time_s'],
+        'training_seeds': {'open_drawer': [11], 'reach_target': [11]}}
+    start = torch.load(out, weights_only=True)        # as if trained on seeds this data does not hold
+    start['training_seeds'] = {'open_box': [7], 'reach_target': [11, 500]}
+    torch.save(start, tmp_path / 'start.pt')
+    again = subprocess.run([*HDP, 'train', 'low-level', '--out', str(tmp_path / 'tuned2.pt'), *options,
+                            '--steps', '1', '--init', str(tmp_path / 'start.pt')],
+                           text=True, capture_output=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert checkpoint.read(tmp_path / 'tuned2.pt')['training_seeds'] == {
+        'open_box': [7], 'open_drawer': [11], 'reach_target': [11, 500]}
     mismatch = subprocess.run([*HDP, 'train', 'low-level', '--out', str(tmp_path / 'x.pt'), '--data', str(episodes),
                                '--init', str(out)],
                               text=True, capture_output=True, timeout=300)

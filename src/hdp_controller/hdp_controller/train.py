@@ -18,6 +18,8 @@ from diffusers.optimization import get_cosine_schedule_with_warmup
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
+from hdp_msgs_py.episodes import union_of_seeds
+
 from . import checkpoint
 from .dataset import SegmentDataset, load_segments
 from .rk_diffuser import RKDConfig, RKDiffuser, parameter_count
@@ -112,7 +114,8 @@ def _load_init(model, model_config: RKDConfig, init) -> dict:
     model.load_state_dict(init_model.state_dict())
     training = payload.get('training') or {}
     return {'path': str(init), 'step': int(training.get('step', 0)),
-            'wall_time_s': float(training.get('wall_time_s', 0.0))}
+            'wall_time_s': float(training.get('wall_time_s', 0.0)),
+            'training_seeds': payload.get('training_seeds') or {}}
 
 
 def _plain(value):
@@ -133,7 +136,7 @@ def _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, mode
                      'train_config': dataclasses.asdict(train_config), 'data': str(data_dir),
                      'segments': len(segs), 'init': init_info,
                      'final_losses': {k: float(np.mean([r[k] for r in recent])) for k in recent[0]}},
-        'training_seeds': segs.training_seeds()})
+        'training_seeds': union_of_seeds(segs.training_seeds(), (init_info or {}).get('training_seeds'))})
     state = {'step': step, 'elapsed_s': elapsed, 'raw_model': model.state_dict(), 'ema': ema.state_dict(),
              'optimizer': optimizer.state_dict(), 'schedule': schedule.state_dict(),
              'torch_rng': torch.get_rng_state(), 'model_config': dataclasses.asdict(model_config),

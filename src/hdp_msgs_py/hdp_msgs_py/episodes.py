@@ -479,3 +479,13 @@ def _gripper_open(t: np.ndarray, width: np.ndarray, commands: list) -> np.ndarra
     stamps, states = (np.array(v) for v in zip(*commanded))
     last = np.searchsorted(stamps, t, side='right') - 1
     return np.where(last >= 0, states[np.maximum(last, 0)], opened)
+
+
+def union_of_seeds(*seed_maps: dict) -> dict[str, list[int]]:
+    """{task: [seed, ...]} maps -> their union, sorted: the seeds a fine-tuned checkpoint has seen
+    (its own data's and every checkpoint it started from), all of which evaluation must avoid."""
+    union: dict[str, set] = {}
+    for seeds in seed_maps:
+        for task, values in (seeds or {}).items():
+            union.setdefault(str(task), set()).update(int(v) for v in values)
+    return {task: sorted(values) for task, values in sorted(union.items())}

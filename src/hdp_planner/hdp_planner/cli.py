@@ -24,6 +24,8 @@ def configure_train(parser) -> None:
     parser.add_argument('--val-data', type=Path, help='episodes for validation metrics (held-out seeds)')
     parser.add_argument('--val-every', type=int, default=1000, help='steps between validations (default 1000)')
     parser.add_argument('--cache', type=Path, help='decoded-sample cache (default: <data>_cache)')
+    parser.add_argument('--init', type=Path, help='start from this checkpoint\'s weights (fine-tuning: fresh optimiser '
+                        'and schedule; its training seeds are recorded too)')
     parser.add_argument('--device', default='cpu', help='cpu or cuda (default cpu)')
     parser.add_argument('--threads', type=int, help='torch CPU threads (default: torch decides)')
     parser.set_defaults(func=run_train)
@@ -39,7 +41,7 @@ def run_train(args) -> int:
     _threads(args)
     try:
         train(args.data, args.out, args.steps, args.batch, args.lr, args.seed, args.val_data, args.device,
-              args.cache, val_every=args.val_every)
+              args.cache, val_every=args.val_every, init=args.init)
     except (CheckpointError, EpisodeError, FileNotFoundError) as err:
         print(err, file=sys.stderr)
         return 1

@@ -18,6 +18,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from hdp_msgs_py.episodes import union_of_seeds
+
 from . import checkpoint, rotations, voxels
 from .dataset import KeyframeDataset
 from .evaluate import format_metrics, offline_metrics
@@ -85,11 +87,14 @@ def _differences(now: dict, stored: dict) -> list[str]:
 
 def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed: int = 0, val_data=None,
           device: str = 'cpu', cache=None, save_every: int = 250, val_every: int = 1000,
-          model_config: ModelConfig | None = None, log=print, progress: bool = True) -> dict:
+          model_config: ModelConfig | None = None, init=None, log=print, progress: bool = True) -> dict:
     """Train (or continue training) the checkpoint at ``out``; returns the last validation metrics.
 
     An existing ``out`` is continued when its config matches this run's
-    (data, steps, batch, lr, seed, model); a different config is refused.
+    (data, steps, batch, lr, seed, init, model); a different config is refused.
+    ``init``: a checkpoint whose weights start the run (fine-tuning with a fresh
+    optimiser and schedule); its model config must match, and its training seeds
+    are recorded with this data's.
     """
     from tqdm import tqdm
     out = Path(out)
@@ -98,12 +103,24 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
     model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()))
     train_config = {'data': str(Path(data).resolve()), 'steps': steps, 'batch': batch, 'lr': lr, 'seed': seed}
     model = NextBestPoseNet(model_config).to(device)
+    init_seeds = {}
+    if init is not None:
+        start = checkpoint.load(init)
+        if start['config']['model'] != json.loads(json.dumps(model_config.to_dict())):
+            raise checkpoint.CheckpointError(f'{init} has another model config; it cannot start this run')
+        model.load_state_dict(checkpoint.build_model(start, init).state_dict())
+        train_config['init'] = {'path': str(Path(init).resolve()), 'step': start['step']}
+        init_seeds = start['training_seeds']
+        log(f'starting from the weights of {init} (step {start["step"]})')
+    training_seeds = union_of_seeds(dataset.training_seeds(), init_seeds)
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     step, metrics = 0, {}
     if out.exists():
         stored = checkpoint.load(out)
         wanted = {'model': model_config.to_dict(), 'train': train_config}
         changed = _differences(json.loads(json.dumps(wanted)), stored['config'])
+        if 'init' in stored['config']['train'] and 'init' not in train_config:
+            changed.append(f"train.init: {stored['config']['train']['init']!r} -> None")
         if changed:
             raise checkpoint.CheckpointError(f'{out} was trained with another config ({"; ".join(changed)}); '
                                              'choose another --out or the same options')
@@ -142,5 +159,5 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
                 metrics = {'step': step, 'validation': offline_metrics(model, val)}
                 bar.write(f'validation at step {step}:\n{format_metrics(metrics["validation"])}')
             if step % save_every == 0 or step == steps:
-                checkpoint.save(out, model, optimizer, step, train_config, metrics, dataset.training_seeds())
+                checkpoint.save(out, model, optimizer, step, train_config, metrics, training_seeds)
     return metrics
