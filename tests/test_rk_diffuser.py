@@ -307,6 +307,14 @@ def test_learned_policies_from_a_checkpoint(tmp_path):
     assert rkd.training_seeds == {'reach_target': [0]}
     joint = load_policy('joint', path, 'ddim', steps=2).plan(request)
     assert joint.ok and panda.within_limits(joint.joints)
+    # The fast sampler skips classifier-free guidance (one encoding per sample, not two);
+    # the full one guides. Both refine alike.
+    for sampler, encodings in (('ddim', 1), ('ddpm', 2)):
+        policy = load_policy('rkd', path, sampler, steps=2)
+        calls = []
+        policy.model.encoder.register_forward_hook(lambda *_: calls.append(1))
+        policy.plan(request)
+        assert len(calls) == encodings and policy.refine_steps == 50
     with pytest.raises(ValueError, match='unknown low-level method'):
         load_policy('magic', path)
 

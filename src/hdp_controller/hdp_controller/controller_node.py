@@ -30,7 +30,7 @@ class ControllerNode(ros.Node):
         super().__init__('controller_node')
         self.declare_parameter('method', 'rkd')                 # rkd | planner | pose_ik | joint
         self.declare_parameter('checkpoint', '')                # '' = models/rk_diffuser.pt
-        self.declare_parameter('sampler', 'ddim')               # ddim (10 steps) | ddpm (100)
+        self.declare_parameter('sampler', 'ddim')               # ddim (5 steps, fast) | ddpm (100)
         self.declare_parameter('segment_timeout_s', 10.0)       # after the trajectory's end
         self.declare_parameter('velocity_scale', VELOCITY_SCALE)  # of the Panda's velocity limits
         self.declare_parameter('joint_prefix', 'panda')         # 'fr3' for an FR3

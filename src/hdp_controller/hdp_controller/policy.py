@@ -24,10 +24,14 @@ from .rk_diffuser import RKDiffuser, as_batch
 
 METHODS = ('rkd', 'planner', 'pose_ik', 'joint')
 DEFAULT_CHECKPOINT_NAME = 'rk_diffuser.pt'
-# The fast sampler: DDIM over this many of the 100 training steps, with a
-# shorter gradient phase of the refinement (its Gauss-Newton steps stay).
-FAST_STEPS = 10
-FAST_REFINE_STEPS = 10
+# The fast sampler: DDIM over FAST_STEPS of the 100 training steps, without
+# classifier-free guidance (half the network evaluations). The refinement is the
+# same for both samplers: success hangs on it, not on the sampler (validation
+# seeds 900-909, oracle NBPs: DDIM-10 with 10 refinement steps 78%, with 50 88%;
+# DDIM-5 unguided 92%; DDPM-100 85%).
+FAST_STEPS = 5
+FAST_GUIDANCE = 1.0
+REFINE_STEPS = 50
 
 
 def default_checkpoint() -> Path:
@@ -55,15 +59,15 @@ class _Sampling:
     policy built with seed s draws from seed s + n, so runs repeat; picklable for workers)."""
 
     def __init__(self, model: RKDiffuser, sampler: str = 'ddpm', steps: int | None = None, seed: int = 0,
-                 training_seeds: dict | None = None):
-        self.model, self.sampler, self.steps = model, sampler, steps
+                 training_seeds: dict | None = None, guidance: float | None = None):
+        self.model, self.sampler, self.steps, self.guidance = model, sampler, steps, guidance
         self.seed, self.calls = seed, 0
         self.training_seeds = training_seeds
 
     def _sample(self, request: SegmentRequest, which) -> dict:
         generator = torch.Generator().manual_seed(self.seed + self.calls)
         self.calls += 1
-        return self.model.sample(conditions(request), self.sampler, self.steps, generator=generator, which=which)
+        return self.model.sample(conditions(request), self.sampler, self.steps, self.guidance, generator, which)
 
 
 class PoseSampler(_Sampling):
@@ -76,7 +80,7 @@ class PoseSampler(_Sampling):
 class RKDPolicy(_Sampling):
     name = 'rkd'
 
-    def __init__(self, *args, refine_steps: int = 50, **kwargs):
+    def __init__(self, *args, refine_steps: int = REFINE_STEPS, **kwargs):
         super().__init__(*args, **kwargs)
         self.refine_steps = refine_steps
 
@@ -106,17 +110,19 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
                 seed: int = 0):
     """A LowLevelPolicy by name; learned ones from ``checkpoint_path`` (default: the released one).
 
-    sampler 'ddpm' runs all 100 steps; 'ddim' defaults to FAST_STEPS.
+    sampler 'ddpm' runs all 100 steps with the checkpoint's guidance; 'ddim' defaults to
+    FAST_STEPS with FAST_GUIDANCE.
     """
     if method not in METHODS:
         raise ValueError(f'unknown low-level method {method!r}; choose from {", ".join(METHODS)}')
     if method == 'planner':
         return PlannerPolicy()
     model, payload = checkpoint.load_model(checkpoint_path or default_checkpoint())
-    steps = steps or (FAST_STEPS if sampler == 'ddim' else None)
-    common = dict(sampler=sampler, steps=steps, seed=seed, training_seeds=payload.get('training_seeds'))
+    fast = sampler == 'ddim'
+    common = dict(sampler=sampler, steps=steps or (FAST_STEPS if fast else None), seed=seed,
+                  guidance=FAST_GUIDANCE if fast else None, training_seeds=payload.get('training_seeds'))
     if method == 'rkd':
-        return RKDPolicy(model, refine_steps=FAST_REFINE_STEPS if sampler == 'ddim' else 50, **common)
+        return RKDPolicy(model, **common)
     if method == 'joint':
         return JointDiffusionPolicy(model, **common)
     return PoseIKPolicy(PoseSampler(model, **common), training_seeds=common['training_seeds'])

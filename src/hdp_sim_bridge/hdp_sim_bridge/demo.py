@@ -609,7 +609,7 @@ def configure(parser) -> None:
     parser.add_argument('--out', type=Path, default=Path('demo_out'), help='output directory (default demo_out/)')
     parser.add_argument('--method', choices=METHODS, default='rkd', help='low-level method (default rkd)')
     parser.add_argument('--sampler', choices=SAMPLERS, default='ddim',
-                        help='RK-Diffuser sampler: ddim 10 steps, ddpm 100 (default ddim)')
+                        help='RK-Diffuser sampler: ddim (5 steps, unguided), ddpm (100, guided) (default ddim)')
     parser.add_argument('--timeout', type=float, default=180.0, metavar='S',
                         help='seconds per episode, instruction to the end (default 180)')
     parser.add_argument('--params-file', type=Path, default=None,
