@@ -20,7 +20,8 @@ def configure(parser) -> None:
                         help='first seed; must not overlap the seeds a checkpoint was trained on')
     parser.add_argument('--checkpoint', help='checkpoint of the learned methods (rkd, pose_ik, joint)')
     parser.add_argument('--sampler', choices=('ddpm', 'ddim'), default='ddim',
-                        help='diffusion sampler of the learned methods: ddim (5 steps, unguided; default) or ddpm (100, guided)')
+                        help='diffusion sampler of the learned methods: ddim (5 steps, unguided; default) '
+                             'or ddpm (100, guided)')
     parser.add_argument('--json', type=Path, help='also write every episode record here')
     parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1)')
     parser.set_defaults(func=run)
