@@ -315,6 +315,8 @@ def test_learned_policies_from_a_checkpoint(tmp_path):
         policy.model.encoder.register_forward_hook(lambda *_: calls.append(1))
         policy.plan(request)
         assert len(calls) == encodings and policy.refine_steps == 50
+    tuned = load_policy('rkd', path, 'ddim', steps=3, guidance=1.5, refine_steps=7)
+    assert (tuned.steps, tuned.guidance, tuned.refine_steps) == (3, 1.5, 7)
     with pytest.raises(ValueError, match='unknown low-level method'):
         load_policy('magic', path)
 

@@ -22,6 +22,12 @@ def configure(parser) -> None:
     parser.add_argument('--sampler', choices=('ddpm', 'ddim'), default='ddim',
                         help='diffusion sampler of the learned methods: ddim (5 steps, unguided; default) '
                              'or ddpm (100, guided)')
+    parser.add_argument('--steps', type=int, help='sampler steps (default: 5 for ddim, 100 for ddpm)')
+    parser.add_argument('--guidance', type=float,
+                        help="classifier-free guidance weight (default: 1.0, i.e. none, for ddim; "
+                             "the checkpoint's for ddpm)")
+    parser.add_argument('--refine-steps', type=int, default=50,
+                        help="rkd's gradient refinement steps (default 50)")
     parser.add_argument('--json', type=Path, help='also write every episode record here')
     parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1)')
     parser.set_defaults(func=run)
@@ -35,8 +41,9 @@ def _names(text: str, known, what: str) -> list[str]:
     return names
 
 
-def make_policy(method: str, checkpoint: str | None, sampler: str):
-    """The planner here; the learned methods from their checkpoint (needs hdp_controller.policy)."""
+def make_policy(method: str, checkpoint: str | None, sampler: str, **sampling):
+    """The planner here; the learned methods from their checkpoint (needs hdp_controller.policy);
+    ``sampling``: steps, guidance, refine_steps (see policy.load_policy)."""
     if method == 'planner':
         from .baselines import PlannerPolicy
         return PlannerPolicy()
@@ -44,7 +51,7 @@ def make_policy(method: str, checkpoint: str | None, sampler: str):
         from .policy import load_policy
     except ImportError as err:
         raise SystemExit(f'{method} needs hdp_controller.policy.load_policy, which cannot be imported: {err}')
-    return load_policy(method, checkpoint, sampler)
+    return load_policy(method, checkpoint, sampler, **sampling)
 
 
 def run(args) -> int:
@@ -56,7 +63,10 @@ def run(args) -> int:
     if args.seed_start < 0:
         raise SystemExit(f'--seed-start must be >= 0, got {args.seed_start}')
     tasks = _names(args.tasks, TASKS, 'task')
-    methods = {name: make_policy(name, args.checkpoint, args.sampler)
+    if (args.steps is not None and args.steps < 1) or args.refine_steps < 1:
+        raise SystemExit('--steps and --refine-steps must be >= 1')
+    sampling = dict(steps=args.steps, guidance=args.guidance, refine_steps=args.refine_steps)
+    methods = {name: make_policy(name, args.checkpoint, args.sampler, **sampling)
                for name in _names(args.methods, METHODS, 'method')}
     start = time.monotonic()
     try:

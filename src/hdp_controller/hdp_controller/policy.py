@@ -107,11 +107,11 @@ class JointDiffusionPolicy(_Sampling):
 
 
 def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps: int | None = None,
-                seed: int = 0):
+                seed: int = 0, guidance: float | None = None, refine_steps: int = REFINE_STEPS):
     """A LowLevelPolicy by name; learned ones from ``checkpoint_path`` (default: the released one).
 
     sampler 'ddpm' runs all 100 steps with the checkpoint's guidance; 'ddim' defaults to
-    FAST_STEPS with FAST_GUIDANCE.
+    FAST_STEPS with FAST_GUIDANCE. ``steps`` and ``guidance`` override those defaults.
     """
     if method not in METHODS:
         raise ValueError(f'unknown low-level method {method!r}; choose from {", ".join(METHODS)}')
@@ -119,10 +119,12 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
         return PlannerPolicy()
     model, payload = checkpoint.load_model(checkpoint_path or default_checkpoint())
     fast = sampler == 'ddim'
+    if guidance is None and fast:
+        guidance = FAST_GUIDANCE
     common = dict(sampler=sampler, steps=steps or (FAST_STEPS if fast else None), seed=seed,
-                  guidance=FAST_GUIDANCE if fast else None, training_seeds=payload.get('training_seeds'))
+                  guidance=guidance, training_seeds=payload.get('training_seeds'))
     if method == 'rkd':
-        return RKDPolicy(model, **common)
+        return RKDPolicy(model, refine_steps=refine_steps, **common)
     if method == 'joint':
         return JointDiffusionPolicy(model, **common)
     return PoseIKPolicy(PoseSampler(model, **common), training_seeds=common['training_seeds'])
