@@ -207,6 +207,16 @@ def test_segment_timeouts_and_no_gripper_action():
     assert blocked.update(1.2 + BLOCKED_STILL_S / 2, _state(goal + 0.03)).result is None
     assert blocked.update(1.2 + BLOCKED_STILL_S, _state(goal + 0.03)).result == 'done'
     assert blocked.short_by == pytest.approx(0.03)
+    # Pressed on a stop, the velocities jitter; no progress for BLOCKED_STILL_S is what counts.
+    from hdp_controller.controller_logic import BLOCKED_BAND
+    pressed = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    jitter = [(goal + 0.03 + sign * BLOCKED_BAND / 3, np.full(7, 0.08 * sign)) for sign in (1, -1) * 5]
+    times = 1.2 + np.arange(len(jitter)) * BLOCKED_STILL_S / 8
+    results = [pressed.update(t, _state(q, qd)).result for t, (q, qd) in zip(times[:9], jitter)]
+    assert results == [None] * 8 + ['done']
+    creeping = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    for i, t in enumerate(np.arange(1.2, 2.9, 0.1)):                # progress of 2 band widths per 0.5 s
+        assert creeping.update(t, _state(goal + 0.1 - i * BLOCKED_BAND * 0.4, moving)).result is None
     assert SegmentExecution(goal, 1.0, 0.0, 2.0, None).update(1.5, _state(goal)) == (False, 'done')
     dead_gripper = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
     assert dead_gripper.update(1.0, _state(goal, width=0.0)).send_gripper

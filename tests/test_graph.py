@@ -46,13 +46,16 @@ EPISODE_TIMEOUT_S = 300.0        # 8 segments of plan + motion, with room for a 
 QUIET_S = 3.0                    # how long "nothing moved" is watched for after a refusal
 SETTLE_FRAMES = 5                # per camera after a reset or a camera stop: 1.25 s of sim time at 4 Hz
 
-# Measured on this graph over the evaluation seeds 1000-1009 (seen phrasings), twice with the same
-# outcome: reach_target succeeded on 9 (not 1005), open_drawer on 5 (1001, 1003, 1004, 1008, 1009;
-# the others spend their 8 segments). Three of the successes per task, and a task passes when one
-# of them succeeds: a rare unlucky episode does not fail CI, a broken graph fails all three.
-SUCCESS_SEEDS = {'reach_target': (1000, 1001, 1004), 'open_drawer': (1001, 1003, 1004)}
-# Several segments (approach, grasp, pull), so the restarted controller has work left to do.
-KILL_TASK, KILL_SEED = 'open_drawer', 1003
+# Measured on this graph over the evaluation seeds 1000-1009 (seen phrasings; `hdp demo --task T
+# --episodes 10 --seed 1000` with these cameras), with the released checkpoints of 2026-12-01,
+# twice for open_drawer with the same outcome: open_drawer succeeded on 5 (1001, 1004, 1005, 1006,
+# 1009); earlier checkpoints gave reach_target 9 (not 1005). Three of the successes per task, and a
+# task passes when one of them succeeds: a rare unlucky episode does not fail CI, a broken graph
+# fails all three.
+SUCCESS_SEEDS = {'reach_target': (1000, 1001, 1004), 'open_drawer': (1001, 1004, 1005)}
+# Several segments (approach, grasp, pull), so the restarted controller has work left to do; the
+# recovery is checked strictly on every try, the task's success on one of two.
+KILL_TASK, KILL_SEEDS = 'open_drawer', (1006, 1009)
 
 
 class Graph:
@@ -362,20 +365,26 @@ def test_a_plain_cyclonedds_rosbags_peer_decodes_the_graph(graph):
 # --- a controller that dies mid-task ---------------------------------------------------------------
 
 def test_a_killed_controller_is_reported_and_a_restarted_one_finishes_the_task(graph):
-    episode = graph.new_episode(KILL_TASK, KILL_SEED)
-    instruction = instruction_for(episode)
-    t = graph.instruct(instruction)
-    graph.wait('the first trajectory', lambda: trajectories_since(graph, t), 120)
-    graph.kill('controller_node')                     # SIGKILL while the segment runs
-    killed = time.monotonic()
-    restarted = graph.start('controller_node')
-    lost = graph.wait('the planner reporting the missing result', lambda: graph.status(
-        killed, 'planner_node: segment 1: no result from the controller'), RESULT_TIMEOUT_S + 60)
-    assert lost[0] == (f'planner_node: segment 1: no result from the controller within {RESULT_TIMEOUT_S:.1f} s '
-                       '(is controller_node running?); re-observing'), lost
-    graph.wait_ready('controller_node', restarted)
-    end = graph.wait_end(instruction, t)
-    assert 'task succeeded after' in end, f'{end}\n{graph.report()}'
-    assert graph.seen_success(killed)
-    done_after_restart = [r for r in graph.since(topics.SEGMENT_RESULT, restarted) if r.frame_id == topics.SEGMENT_DONE]
-    assert done_after_restart and trajectories_since(graph, restarted), graph.report()
+    outcomes = []
+    for seed in KILL_SEEDS:
+        episode = graph.new_episode(KILL_TASK, seed)
+        instruction = instruction_for(episode)
+        t = graph.instruct(instruction)
+        graph.wait('the first trajectory', lambda: trajectories_since(graph, t), 120)
+        graph.kill('controller_node')                     # SIGKILL while the segment runs
+        killed = time.monotonic()
+        restarted = graph.start('controller_node')
+        lost = graph.wait('the planner reporting the missing result', lambda: graph.status(
+            killed, 'planner_node: segment 1: no result from the controller'), RESULT_TIMEOUT_S + 60)
+        assert lost[0] == (f'planner_node: segment 1: no result from the controller within {RESULT_TIMEOUT_S:.1f} s '
+                           '(is controller_node running?); re-observing'), lost
+        graph.wait_ready('controller_node', restarted)
+        end = graph.wait_end(instruction, t)
+        done_after_restart = [r for r in graph.since(topics.SEGMENT_RESULT, restarted)
+                              if r.frame_id == topics.SEGMENT_DONE]
+        assert done_after_restart and trajectories_since(graph, restarted), graph.report()
+        outcomes.append(f'seed {seed}: {end}')
+        if 'task succeeded after' in end:
+            assert graph.seen_success(killed)
+            return
+    pytest.fail('no seed succeeded after the restart:\n' + '\n'.join(outcomes) + f'\n{graph.report()}')

@@ -35,7 +35,8 @@ from .trajectory import TrajectoryError, joint_trajectory
 
 GOAL_TOLERANCE = 0.02          # rad: max joint error at the last waypoint that counts as arrived
 STILL_VELOCITY = 0.02          # rad/s: max joint speed that counts as still (the sim settles < 0.01)
-BLOCKED_STILL_S = 0.5          # s still short of the last waypoint after the trajectory's end: blocked by contact
+BLOCKED_STILL_S = 0.5          # s without progress short of the last waypoint after the trajectory's end: blocked
+BLOCKED_BAND = 0.005           # rad every joint stays within meanwhile (pressed on a contact, the arm jitters)
 GRIPPER_TOLERANCE = 0.002      # m of width from the target that counts as reached
 GRIPPER_MOVED = 0.001          # m of width change that shows the fingers responded
 GRIPPER_STILL_S = 0.2          # s without width change after moving: closed on an object
@@ -170,8 +171,10 @@ class SegmentExecution:
     Times are seconds on the node's clock (sim time under use_sim_time).
 
     The arm has arrived when, after the trajectory's end, it is still at the last waypoint,
-    or still anywhere for BLOCKED_STILL_S: in contact tasks a drawer's end stop or a hinge
-    holds it short (``short_by`` then says how far, in rad), as it held the experts.
+    or has stayed within BLOCKED_BAND of one position for BLOCKED_STILL_S anywhere: in
+    contact tasks a drawer's end stop or a hinge holds it short (``short_by`` then says how
+    far, in rad), as it held the experts. Pressed against such a stop the joint velocities
+    jitter above STILL_VELOCITY, so "blocked" looks at progress, not at speed.
     """
 
     def __init__(self, goal_q, duration_s: float, start_s: float, timeout_s: float, gripper_open: bool | None):
@@ -180,7 +183,7 @@ class SegmentExecution:
         self.gripper_open = gripper_open
         self._gripper_start: tuple[float, float] | None = None      # (time, width) when commanded
         self._last_change: tuple[float, float] | None = None        # (time, width) of the last motion
-        self._still_since: float | None = None
+        self._held: tuple[float, np.ndarray] | None = None       # (since, q) while making no progress
         self.arrived_s: float | None = None
         self.short_by: float | None = None
 
@@ -193,10 +196,12 @@ class SegmentExecution:
         error = float(np.max(np.abs(state.q - self.goal_q)))
         speed = float(np.max(np.abs(state.qd)))
         elapsed = now_s - self.start_s
-        still = elapsed >= self.duration_s and speed <= STILL_VELOCITY
-        self._still_since = (self._still_since or now_s) if still else None
-        blocked = still and now_s - self._still_since >= BLOCKED_STILL_S
-        if still and (error <= GOAL_TOLERANCE or blocked):
+        ended = elapsed >= self.duration_s
+        if not ended or self._held is None or np.max(np.abs(state.q - self._held[1])) > BLOCKED_BAND:
+            self._held = (now_s, state.q.copy()) if ended else None
+        at_goal = ended and speed <= STILL_VELOCITY and error <= GOAL_TOLERANCE
+        blocked = self._held is not None and now_s - self._held[0] >= BLOCKED_STILL_S
+        if at_goal or blocked:
             self.arrived_s = now_s
             self.short_by = error if error > GOAL_TOLERANCE else None
             if self.gripper_open is None:
