@@ -33,7 +33,8 @@ class ToJointTrajectory:
 
 def configure(parser) -> None:
     parser.description = ('Latency (p50/p95, NBP -> JointTrajectory) and success of RK-Diffuser with the '
-                          '100-step DDPM sampler and the fast sampler (DDIM, unguided), on the same evaluation seeds.')
+                          '100-step DDPM sampler and the fast sampler (DDIM, unguided), on the same '
+                          'evaluation seeds.')
     parser.add_argument('--checkpoint', help='RK-Diffuser checkpoint (default: the released one)')
     parser.add_argument('--tasks', default='all', help='comma-separated tasks or "all" (default)')
     parser.add_argument('--episodes', type=int, default=5, help='episodes per task (default 5)')
