@@ -192,15 +192,49 @@ def test_refinement_holds_the_start_respects_limits_and_reaches_the_goal():
     poses = kinematics.fk_pose(truth)
     noisy = truth + 0.05 * torch.randn_like(truth)
     noisy[:, 0] = truth[:, 0]
-    refined = refine(noisy, poses, steps=100, lr=0.05)
+    refined = refine(noisy, poses)
     translation, rotation = goal_error(refined, poses[:, -1])
     assert torch.equal(refined[:, 0], truth[:, 0])
     assert translation.item() < 2e-3 and np.degrees(rotation.item()) < 0.5
     # A pose trajectory that pulls joint 4 beyond its upper limit: clamped, never past.
     beyond = truth.clone()
     beyond[..., 3] = torch.linspace(-1.0, 0.5, HORIZON)
-    out = refine(truth, kinematics.fk_pose(beyond), steps=30, lr=0.05)
+    out = refine(truth, kinematics.fk_pose(beyond), steps=30)
     assert (out[:, 1:, 3] <= panda.UPPER[3]).all() and (out >= torch.tensor(panda.LOWER, dtype=out.dtype)).all()
+
+
+def test_refinement_keeps_a_joint_trajectory_that_ends_on_the_goal_turned_half_a_turn():
+    """The Panda hand's fingers are alike: the goal turned half a turn about the approach axis
+    is the same grasp. A joint trajectory that ends there is kept, not wound back through half
+    a turn of the wrist (which here would also run joint 7 into its limit)."""
+    q0 = torch.tensor(panda.HOME, dtype=torch.float32)
+    q1 = q0 + torch.tensor([0.3, 0.2, -0.2, 0.3, 0.1, -0.2, 1.7])      # joint 7 at 2.49 of its 2.90
+    ramp = torch.linspace(0, 1, HORIZON)[:, None]
+    poses = kinematics.fk_pose((q0 + (q1 - q0) * ramp)[None])
+    turned = q1 - torch.tensor([0, 0, 0, 0, 0, 0, torch.pi])         # joint 7 turns the hand about z
+    sampled = (q0 + (turned - q0) * ramp)[None]
+    refined = refine(sampled, poses)
+    translation, rotation = goal_error(refined, poses[:, -1])
+    assert translation.item() < 1e-3 and np.degrees(rotation.item()) < 0.5
+    assert (refined - sampled).abs().max() < 0.05
+    # goal_error counts the turned grasp as reached, and nothing else
+    assert goal_error(turned[None, None], poses[:, -1])[1].item() < 1e-3
+    assert np.degrees(goal_error(q0[None, None], poses[:, -1])[1].item()) > 10
+
+
+def test_refinement_makes_up_for_a_joint_held_at_its_limit_with_the_others():
+    """A pose trajectory that joint 6 alone would follow past its upper limit: the joint stays
+    at the limit and the other six reach the goal (clamping alone would stop short)."""
+    q = torch.tensor(panda.HOME, dtype=torch.float64) + torch.tensor([0.3, 0.2, -0.2, 0.3, 0.4, 0, 0.4])
+    q[5] = panda.UPPER[5] - 0.05
+    beyond = q.clone()
+    beyond[5] = panda.UPPER[5] + 0.03
+    ramp = torch.linspace(0, 1, HORIZON, dtype=torch.float64)[:, None]
+    poses = kinematics.fk_pose((q + (beyond - q) * ramp)[None])
+    refined = refine(q.expand(1, HORIZON, 7).clone(), poses)
+    translation, rotation = goal_error(refined, poses[:, -1])
+    assert (refined[..., 5] <= panda.UPPER[5]).all()
+    assert translation.item() < 2e-3 and np.degrees(rotation.item()) < 0.5
 
 
 def test_conditions_canonicalise_quaternion_signs():
