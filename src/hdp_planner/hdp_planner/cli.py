@@ -97,7 +97,8 @@ def configure_hierarchy(parser) -> None:
                         help='instructions from training phrasings, held-out ones, or both (default seen)')
     parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent.pt')
     parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser.pt')
-    parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'), help='RK-Diffuser sampler (default ddim)')
+    parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
+                        help='RK-Diffuser sampler (default ddim)')
     parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
     parser.add_argument('--threads', type=int, help='torch CPU threads')
     parser.add_argument('--json', type=Path, help='also write the results here')
@@ -125,7 +126,8 @@ def run_hierarchy(args) -> int:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1
     print(markdown_table(results))
-    print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {results['seeds'][0]}-{results['seeds'][1]}")
+    first, last = results['seeds']
+    print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

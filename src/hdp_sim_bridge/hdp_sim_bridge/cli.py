@@ -127,7 +127,8 @@ def run_bench_sim(args) -> int:
                 for name in bridge.cameras:
                     bridge.camera_messages(name)
         wall = time.perf_counter() - start
-        results[label] = {'sim_s': args.seconds, 'wall_s': round(wall, 3), 'real_time_factor': round(args.seconds / wall, 2)}
+        results[label] = {'sim_s': args.seconds, 'wall_s': round(wall, 3),
+                          'real_time_factor': round(args.seconds / wall, 2)}
     bridge.close()
     if args.json:
         print(json.dumps(results, indent=2))
