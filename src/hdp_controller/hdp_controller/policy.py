@@ -27,8 +27,8 @@ DEFAULT_CHECKPOINT_NAME = 'rk_diffuser.pt'
 # The fast sampler: DDIM over FAST_STEPS of the 100 training steps, without
 # classifier-free guidance (half the network evaluations). The refinement is the
 # same for both samplers: success hangs on it, not on the sampler (validation
-# seeds 900-909, oracle NBPs: DDIM-10 with 10 refinement steps 78%, with 50 88%;
-# DDIM-5 unguided 92%; DDPM-100 85%).
+# seeds 900-909, oracle NBPs, the earlier Adam refinement: DDIM-10 with 10
+# refinement steps 78%, with 50 88%; DDIM-5 unguided 92%; DDPM-100 85%).
 FAST_STEPS = 5
 FAST_GUIDANCE = 1.0
 REFINE_STEPS = 50
