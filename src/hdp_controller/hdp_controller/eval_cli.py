@@ -27,7 +27,7 @@ def configure(parser) -> None:
                         help="classifier-free guidance weight (default: 1.0, i.e. none, for ddim; "
                              "the checkpoint's for ddpm)")
     parser.add_argument('--refine-steps', type=int, default=50,
-                        help="rkd's gradient refinement steps (default 50)")
+                        help="rkd's Gauss-Newton refinement steps (default 50)")
     parser.add_argument('--json', type=Path, help='also write every episode record here')
     parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1)')
     parser.set_defaults(func=run)
