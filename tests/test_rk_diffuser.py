@@ -14,7 +14,7 @@ from hdp_controller.low_level import HORIZON, SegmentRequest
 from hdp_controller.pointnet2 import PointNet2Encoder, ball_query, farthest_point_sample
 from hdp_controller.policy import conditions
 from hdp_controller.refine import goal_error, refine
-from hdp_controller.rk_diffuser import RKDConfig, RKDiffuser
+from hdp_controller.rk_diffuser import RKDConfig, RKDiffuser, joint_motion, joints_from_motion
 from hdp_controller.unet import TemporalUnet
 from hdp_msgs_py import panda
 from hdp_msgs_py.episodes import list_episodes, read_episode
@@ -182,6 +182,16 @@ def test_sample_returns_goal_pose_and_joints_in_limits(segments):
     assert (out['joints'] <= torch.tensor(panda.UPPER) + 1e-6).all()
 
 
+def test_joint_diffuser_works_on_the_motion_from_the_start():
+    """Its target is zero at the start waypoint whatever the start joints, and maps back exactly."""
+    q0 = torch.tensor([panda.HOME, panda.UPPER], dtype=torch.float32) - 0.1
+    joints = q0[:, None] + torch.linspace(0, 1, HORIZON)[None, :, None] * torch.tensor([0.4, -0.2, 0, 0, 0.3, 0, 1.0])
+    motion = joint_motion(joints, q0)
+    assert torch.equal(motion[:, 0], torch.zeros(2, 7))
+    assert torch.allclose(motion[0], motion[1], atol=1e-5)      # the same motion from two starts
+    assert torch.allclose(joints_from_motion(motion, q0), joints, atol=1e-6)
+
+
 # --- refinement ---------------------------------------------------------------------------
 
 def test_refinement_holds_the_start_respects_limits_and_reaches_the_goal():
@@ -263,11 +273,14 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
     class Evil:
         def __reduce__(self):
             return (print, ('pwned',))
-    torch.save({'format': checkpoint.FORMAT, 'version': 1, 'config': {}, 'model': {}, 'x': Evil()},
+    torch.save({'format': checkpoint.FORMAT, 'version': checkpoint.VERSION, 'config': {}, 'model': {}, 'x': Evil()},
                tmp_path / 'evil.pt')
     with pytest.raises(checkpoint.CheckpointError):
         checkpoint.read(tmp_path / 'evil.pt')
     payload = torch.load(path, weights_only=True)
+    torch.save({**payload, 'version': 1}, tmp_path / 'absolute_joints.pt')    # the joint diffuser's first form
+    with pytest.raises(checkpoint.CheckpointError, match='version 1, this code reads 2'):
+        checkpoint.load_model(tmp_path / 'absolute_joints.pt')
     payload['model']['pose.net.final.1.weight'] = torch.zeros(3)
     torch.save(payload, tmp_path / 'shape.pt')
     with pytest.raises(checkpoint.CheckpointError, match='wrong shape'):

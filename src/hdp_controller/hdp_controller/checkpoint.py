@@ -16,7 +16,7 @@ import torch
 from .rk_diffuser import RKDConfig, RKDiffuser
 
 FORMAT = 'hdp_rk_diffuser'
-VERSION = 1
+VERSION = 2      # 2: the joint diffuser generates motion from the start joints
 MAX_BYTES = 512 * 1024 ** 2
 
 

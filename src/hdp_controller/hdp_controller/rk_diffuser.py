@@ -4,9 +4,10 @@ Conditions C = {start pose, goal pose (the NBP), low-dim state (joint
 positions and velocities, gripper width and open state), front-camera
 points, trajectory rank}. The pose diffuser generates the (T, 7) EE pose
 trajectory with start and goal inpainted (as its deviation from the straight
-line between them); the joint diffuser generates the
-(T, 7) joint trajectory with the start joints inpainted; one encoder embeds
-the conditions for both (the paper gives them the same C). Training distils
+line between them); the joint diffuser generates the (T, 7) joint
+trajectory with the start joints inpainted (as the motion from them, see
+JOINT_MOTION_SCALE); one encoder embeds the conditions for both (the paper
+gives them the same C). Training distils
 the pose diffuser's accuracy into the joint diffuser through differentiable
 kinematics:  L = b1 L_pose + b2 L_joint + b3 L_joint->pose,  the last term
 comparing FK(predicted joints) with the demonstrated pose trajectory in
@@ -106,8 +107,24 @@ def normalize_joints(q: torch.Tensor) -> torch.Tensor:
     return 2 * (q - _LOWER.to(q)) / (_UPPER - _LOWER).to(q) - 1
 
 
-def unnormalize_joints(q: torch.Tensor) -> torch.Tensor:
-    return (q + 1) / 2 * (_UPPER - _LOWER).to(q) + _LOWER.to(q)
+# The joint diffuser works on the motion from the start joints, in units of
+# this scale, rather than on absolute angles normalised over each joint's range
+# (this module's first version). The start is then zero by construction and the
+# network's residual error is a fraction of a segment's motion, not of a joint's
+# 5.8 rad range: with absolute angles the CPU-trained diffuser's waypoints
+# jittered by 0.3 rad (mean second difference; the demonstrations' is 0.0006)
+# and half its trajectories left the inpainted start with a jump over 0.5 rad
+# (validation seeds 900-909, DDIM-5), so refinement had to discard them.
+JOINT_MOTION_SCALE = 0.5      # rad; segments move a joint by 0.2-0.6 rad (std)
+
+
+def joint_motion(joints: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+    """(B, T, 7) joints, (B, 7) start joints -> (B, T, 7) scaled motion from the start."""
+    return (joints - start[:, None]) / JOINT_MOTION_SCALE
+
+
+def joints_from_motion(motion: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+    return motion * JOINT_MOTION_SCALE + start[:, None]
 
 
 def mlp(c_in: int, c_out: int) -> nn.Sequential:
@@ -167,10 +184,10 @@ class RKDiffuser(nn.Module):
         b = batch['q'].shape[0]
         cond = self.encoder(batch, torch.rand(b, device=batch['q'].device) < self.config.cond_dropout)
         deviation = pose_deviation(batch['poses'], batch['start_pose'], batch['goal_pose'])
-        joints = normalize_joints(batch['joints'])
+        motion = joint_motion(batch['joints'], batch['q'])
         l_pose, _ = self.pose.loss(deviation, cond, {0: deviation[:, 0], -1: deviation[:, -1]})
-        l_joint, joints_hat = self.joint.loss(joints, cond, {0: joints[:, 0]})
-        l_fk = fk_pose_loss(unnormalize_joints(joints_hat), batch['poses'])
+        l_joint, motion_hat = self.joint.loss(motion, cond, {0: motion[:, 0]})
+        l_fk = fk_pose_loss(joints_from_motion(motion_hat, batch['q']), batch['poses'])
         b1, b2, b3 = self.config.loss_weights
         total = b1 * l_pose + b2 * l_joint + b3 * l_fk
         return total, {'pose': l_pose.item(), 'joint': l_joint.item(), 'joint_to_pose': l_fk.item()}
@@ -189,8 +206,9 @@ class RKDiffuser(nn.Module):
             deviation = self.pose.sample(cond, {0: zero, -1: zero}, null, guidance, sampler, steps, generator)
             out['poses'] = poses_from_deviation(deviation, batch['start_pose'], batch['goal_pose'])
         if 'joint' in which:
-            known = {0: normalize_joints(batch['q'])}
-            joints = unnormalize_joints(self.joint.sample(cond, known, null, guidance, sampler, steps, generator))
+            known = {0: torch.zeros_like(batch['q'])}
+            joints = joints_from_motion(self.joint.sample(cond, known, null, guidance, sampler, steps, generator),
+                                        batch['q'])
             out['joints'] = torch.maximum(torch.minimum(joints, _UPPER), _LOWER)
         return out
 
