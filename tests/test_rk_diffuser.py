@@ -184,7 +184,7 @@ def test_sample_returns_goal_pose_and_joints_in_limits(segments):
 
 def test_joint_diffuser_works_on_the_motion_from_the_start():
     """Its target is zero at the start waypoint whatever the start joints, and maps back exactly."""
-    q0 = torch.tensor([panda.HOME, panda.UPPER], dtype=torch.float32) - 0.1
+    q0 = torch.tensor(np.stack([panda.HOME, panda.UPPER]), dtype=torch.float32) - 0.1
     joints = q0[:, None] + torch.linspace(0, 1, HORIZON)[None, :, None] * torch.tensor([0.4, -0.2, 0, 0, 0.3, 0, 1.0])
     motion = joint_motion(joints, q0)
     assert torch.equal(motion[:, 0], torch.zeros(2, 7))
