@@ -29,7 +29,8 @@ import torch
 
 from hdp_msgs_py import panda
 
-from .kinematics import ROBOT_BASE, forward_kinematics, panda_chain, quat_to_matrix
+from .kinematics import (ROBOT_BASE, fk_pose, forward_kinematics, matrix_to_quat, panda_chain, pose_error,
+                         quat_to_matrix)
 
 _LIMIT_MARGIN = 1e-3      # rad inside the limits
 # A joint trajectory that moves a joint further than this between two of its 64
@@ -126,8 +127,8 @@ def continuous_start(joints: torch.Tensor, max_step: float = MAX_JOINT_STEP) -> 
 def goal_error(joints: torch.Tensor, goal_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B,) translation (m) and rotation (rad) errors of the last waypoint's FK against (B, 7) goals,
     the rotation against the goal or the same grasp turned half a turn, whichever is nearer."""
-    position, rotation = forward_kinematics(joints[:, -1])
-    goal = quat_to_matrix(goal_pose[:, 3:].to(rotation.dtype))
-    cosines = [((rotation * target).sum((-2, -1)) - 1) / 2 for target in (goal, goal @ _half_turn(goal.dtype))]
-    angle = torch.acos(torch.maximum(*cosines).clamp(-1.0, 1.0))
-    return torch.linalg.norm(position - goal_pose[:, :3].to(position.dtype), dim=-1), angle
+    reached = fk_pose(joints[:, -1])
+    goal = goal_pose.to(reached.dtype)
+    turned = torch.cat([goal[:, :3], matrix_to_quat(quat_to_matrix(goal[:, 3:]) @ _half_turn(goal.dtype))], 1)
+    translation, angle = pose_error(reached, goal)
+    return translation, torch.minimum(angle, pose_error(reached, turned)[1])
