@@ -7,6 +7,8 @@ import pybullet
 import pytest
 
 from hdp_msgs_py import panda
+from hdp_sim_bridge import motion
+from hdp_sim_bridge.trajectory_follower import ActiveTrajectory
 from hdp_sim_bridge.world import EE_LINK, GRASP_FORCE_LIMIT, TABLE_TOP_Z, TIME_STEP, PandaWorld
 
 DOWN = (1.0, 0.0, 0.0, 0.0)       # grasp target z axis pointing at the table
@@ -121,6 +123,39 @@ def test_streamed_targets_are_followed_without_lag(world):
         world.step()
         worst = max(worst, np.abs(world.joint_positions() - target).max())
     assert worst < 0.001
+
+
+def test_a_streamed_trajectory_the_arm_fell_behind_is_caught_up(world):
+    # A ramp that starts at 0.8 rad/s from rest: no arm follows that velocity step, so it
+    # falls behind, then must catch up rather than trail by v^2 / (2 a) (0.085 rad on joint 2,
+    # which swept the fingers 1-4 cm off the experts' straight descents onto a cup).
+    direction = np.array([0, 1, 0, 1, 0, 0, 0])
+    lag = []
+    for k in range(1, 241):                                     # 1 s
+        target = panda.HOME + 0.8 * k * TIME_STEP * direction
+        world.command_arm(target)
+        world.step()
+        lag.append(np.abs(world.joint_positions() - target).max())
+    assert max(lag[:24]) > 0.005                                 # it did fall behind
+    assert max(lag[120:]) < 0.005                                # and is on the ramp after 0.5 s
+
+
+def test_a_timed_path_with_a_sharp_corner_is_followed_closely(world):
+    # A planner's path (dense waypoints) that turns a right angle between joints 2 and 4,
+    # timed and streamed as the experts stream it: the turn is taken slowly enough that the
+    # arm neither trails the path nor overshoots the corner.
+    ramp = np.linspace(0.0, 0.4, 21)[:, None]
+    path = np.vstack([panda.HOME + ramp * [0, 1, 0, 0, 0, 0, 0],
+                      panda.HOME + [0, 0.4, 0, 0, 0, 0, 0] + ramp[1:] * [0, 0, 0, 1, 0, 0, 0]])
+    times = motion.time_parameterize(path, velocity_scale=0.5)
+    trajectory = ActiveTrajectory(world.sim_time, times, path, motion.path_velocities(path, times, 0.5))
+    worst = 0.0
+    while world.sim_time < trajectory.end_time:
+        target = trajectory.sample(world.sim_time + TIME_STEP)
+        world.command_arm(target)
+        world.step()
+        worst = max(worst, np.abs(world.joint_positions() - target).max())
+    assert worst < 0.002
 
 
 def run_episode(world, seed) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 
 from hdp_msgs_py import panda
 from hdp_msgs_py.conversions import build_joint_trajectory
-from hdp_sim_bridge.motion import time_parameterize
+from hdp_sim_bridge.motion import path_velocities, time_parameterize
 
 # Fraction of the velocity limits a generated trajectory may use.
 VELOCITY_SCALE = 0.5
@@ -42,8 +42,5 @@ def joint_trajectory(q_current, joints, joint_names=panda.ARM_JOINTS, velocity_s
                      stamp=None):
     """trajectory_msgs/JointTrajectory through ``joints`` (K, 7) from ``q_current`` (7,)."""
     positions, times = timed_waypoints(q_current, joints, velocity_scale)
-    velocities = np.gradient(positions, times, axis=0)
-    velocities[[0, -1]] = 0.0
-    limit = panda.VELOCITY_LIMITS * velocity_scale
-    velocities = np.clip(velocities, -limit, limit)
+    velocities = path_velocities(positions, times, velocity_scale)
     return build_joint_trajectory(joint_names, positions, times, velocities, stamp=stamp)

@@ -14,6 +14,7 @@ import numpy as np
 from hdp_msgs_py import panda
 
 from . import motion
+from .trajectory_follower import ActiveTrajectory
 from .world import TIME_STEP
 
 SETTLE_VELOCITY = 0.01     # rad/s: "at rest", below the keyframe stopping delta
@@ -98,13 +99,17 @@ def plan(world, task, waypoint, rng, config: ExpertConfig, q_goal=None) -> np.nd
 
 
 def follow(world, task, path: np.ndarray, config: ExpertConfig, on_step, on_arrive, hold: float) -> None:
-    """Track a time-parameterised joint path, then wait for the arm to stop (see ``rest``)."""
+    """Track a time-parameterised joint path, then wait for the arm to stop (see ``rest``).
+
+    The path is streamed a target per step, sampled the way the bridge samples a
+    JointTrajectory with velocities (a cubic spline), so demonstrations and
+    policies move the arm alike.
+    """
     times = motion.time_parameterize(path, velocity_scale=config.velocity_scale)
-    t0 = world.sim_time
-    while world.sim_time - t0 < times[-1]:
-        t = world.sim_time - t0 + TIME_STEP
-        target = np.array([np.interp(t, times, path[:, j]) for j in range(path.shape[1])])
-        world.command_arm(target)
+    velocities = motion.path_velocities(path, times, config.velocity_scale)
+    trajectory = ActiveTrajectory(world.sim_time, times, path, velocities)
+    while world.sim_time < trajectory.end_time:
+        world.command_arm(trajectory.sample(world.sim_time + TIME_STEP))
         _step(world, task, on_step)
     rest(world, task, path[-1], on_step, on_arrive, hold)
 

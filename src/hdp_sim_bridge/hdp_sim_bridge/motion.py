@@ -23,7 +23,7 @@ import numpy as np
 import pybullet as p
 from ompl import base as ob, geometric as og, util as ou
 
-from hdp_msgs_py.panda import LOWER, UPPER, VELOCITY_LIMITS
+from hdp_msgs_py.panda import ACCELERATION_LIMITS, LOWER, UPPER, VELOCITY_LIMITS
 
 ARM = tuple(range(7))     # pybullet joint indices of panda_joint1..7
 EE_LINK = 11              # panda_grasptarget, 0.105 m beyond the hand
@@ -35,8 +35,13 @@ MARGIN = 0.005            # m: closer than this to an obstacle counts as collisi
 IK_POS_TOL = 1e-3         # m
 IK_ROT_TOL = math.radians(1.0)
 RRT_RESOLUTION = 0.02     # rad: joint-space step at which motions are checked
-DEFAULT_ACCELERATION = 5.0  # rad/s^2 per joint: gentle, under the Franka's 7.5-20
+# rad/s^2 per joint: 60% of what the simulated arm can follow (world.ACCELERATION_LIMITS), as
+# the spline through the waypoints accelerates more than the profile it samples.
+DEFAULT_ACCELERATION = 0.3 * ACCELERATION_LIMITS
 _MIN_DT = 1e-3            # s: the time given to a zero-length segment
+# Round a turn the spline through the waypoints accelerates up to about four times speed^2 x
+# curvature (its velocities there are central differences across the turn).
+_TURN_MARGIN = 4.0
 # pybullet collides convex hulls of the meshes. panda_link5's hull fills the
 # recess the real link has for the wrist, so it overlaps panda_link7 and the
 # hand whenever joint 6 < ~0.7 rad, which the real arm does freely.
@@ -348,14 +353,21 @@ def plan_to_pose(client, robot, q_start, xyz, quat, obstacles, timeout=5.0, seed
 def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATION):
     """time_from_start (N,) for a joint path (N, 7): 0 first, strictly increasing.
 
-    Along the piecewise-linear path the speed follows a trapezoidal profile
-    that starts and ends at rest, with no joint exceeding
-    VELOCITY_LIMITS * velocity_scale between consecutive waypoints nor
-    `acceleration` (rad/s^2, scalar or (7,)) along a segment. Direction
-    changes at waypoints are taken at speed (dense paths turn gently).
+    Along the path the speed follows a trapezoidal profile that starts and
+    ends at rest, with no joint exceeding VELOCITY_LIMITS * velocity_scale
+    between consecutive waypoints nor `acceleration` (rad/s^2, scalar or (7,))
+    along a segment. Where the path turns, the speed is also capped so that
+    no joint's acceleration round the turn (speed^2 x curvature) exceeds
+    `acceleration`, the curvature spread over the two segments either side:
+    a dense path turns gently at speed, and a planner's sharp corner is taken
+    slowly. Streamed as a cubic spline through the waypoints at the
+    velocities of `path_velocities`, the timed path is followed by the
+    simulated arm to within a few mrad.
     """
     path = np.asarray(path, dtype=float)
-    dq = np.abs(np.diff(path, axis=0))                       # (N-1, 7)
+    acceleration = np.broadcast_to(np.asarray(acceleration, dtype=float), (7,))
+    step = np.diff(path, axis=0)                             # (N-1, 7)
+    dq = np.abs(step)
     length = np.linalg.norm(dq, axis=1)                      # (N-1,)
     moving = length > 0
     # Path speed and acceleration at which the most loaded joint hits its
@@ -367,20 +379,36 @@ def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATIO
     reach = np.zeros(len(dq))
     reach[moving] = 2 * a_cap[moving] * length[moving]
     # Speeds at the waypoints: at rest at both ends, capped by both adjacent
-    # segments, and reachable under the acceleration cap (forward, then back).
+    # segments and by the turn between the moving segments either side, and
+    # reachable under the acceleration cap (forward, then back).
     speed = np.zeros(len(path))
     speed[1:-1] = np.minimum(v_cap[:-1], v_cap[1:])
+    moves = np.flatnonzero(moving)
+    for before, after in zip(moves[:-1], moves[1:]):
+        turn = np.abs(step[after] / length[after] - step[before] / length[before])    # (7,)
+        curvature = turn / ((length[before] + length[after]) / 2)
+        with np.errstate(divide='ignore'):
+            speed[after] = min(speed[after], np.sqrt(np.min(acceleration / (_TURN_MARGIN * curvature))))
     for k in range(len(dq)):
         speed[k + 1] = min(speed[k + 1], math.sqrt(speed[k] ** 2 + reach[k]))
     for k in reversed(range(len(dq))):
         speed[k] = min(speed[k], math.sqrt(speed[k + 1] ** 2 + reach[k]))
     dt = np.full(len(dq), _MIN_DT)
-    for k in np.flatnonzero(moving):
+    for k in moves:
         va, vb, a, L = speed[k], speed[k + 1], a_cap[k], length[k]
         peak = min(v_cap[k], math.sqrt(a * L + (va ** 2 + vb ** 2) / 2))
         ramps = (2 * peak ** 2 - va ** 2 - vb ** 2) / (2 * a)    # distance spent ramping
         dt[k] = max(_MIN_DT, (2 * peak - va - vb) / a + (L - ramps) / peak)
     return np.concatenate([[0.0], np.cumsum(dt)])
+
+
+def path_velocities(path, times, velocity_scale=1.0):
+    """Joint velocities (N, 7) at the waypoints of a timed path (N, 7), times (N,):
+    central differences, zero at both ends, clipped to VELOCITY_LIMITS * velocity_scale."""
+    velocities = np.gradient(np.asarray(path, dtype=float), times, axis=0)
+    velocities[[0, -1]] = 0.0
+    limit = VELOCITY_LIMITS * velocity_scale
+    return np.clip(velocities, -limit, limit)
 
 
 def resample_path(path, n):
