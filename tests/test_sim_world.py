@@ -7,7 +7,7 @@ import pybullet
 import pytest
 
 from hdp_msgs_py import panda
-from hdp_sim_bridge import motion
+from hdp_sim_bridge import experts, motion
 from hdp_sim_bridge.trajectory_follower import ActiveTrajectory
 from hdp_sim_bridge.world import EE_LINK, GRASP_FORCE_LIMIT, TABLE_TOP_Z, TIME_STEP, PandaWorld
 
@@ -156,6 +156,22 @@ def test_a_timed_path_with_a_sharp_corner_is_followed_closely(world):
         world.step()
         worst = max(worst, np.abs(world.joint_positions() - target).max())
     assert worst < 0.002
+
+
+def test_rest_waits_for_the_arm_at_its_target_not_for_a_turnaround(world):
+    # Streamed away from HOME at 0.8 rad/s on joint 2, then told to rest at HOME: the joint
+    # turns round, all joints still for an instant, before it gets back.
+    class NoTask:
+        def on_step(self, world):
+            pass
+    for k in range(1, 73):                                       # 0.3 s
+        world.command_arm(panda.HOME + 0.8 * k * TIME_STEP * np.array([0, 1, 0, 0, 0, 0, 0]))
+        world.step()
+    arrived = []
+    experts.rest(world, NoTask(), panda.HOME, lambda: None, lambda: arrived.append(world.joint_positions()),
+                 hold=0.0)
+    assert len(arrived) == 1
+    assert np.abs(arrived[0] - panda.HOME).max() < 0.002
 
 
 def run_episode(world, seed) -> np.ndarray:

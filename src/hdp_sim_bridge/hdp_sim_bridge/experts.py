@@ -115,8 +115,9 @@ def follow(world, task, path: np.ndarray, config: ExpertConfig, on_step, on_arri
 
 
 def rest(world, task, q_final, on_step, on_arrive, hold: float, timeout: float = 3.0) -> None:
-    """Hold ``q_final`` until the arm is still; ``on_arrive`` fires at the first still
-    step (the keyframe the rule will find), then the arm stays still ``hold`` s more.
+    """Hold ``q_final`` until the arm is still there (or blocked on the way); ``on_arrive``
+    fires at the first still step (the keyframe the rule will find), then the arm stays
+    still ``hold`` s more. An arm turning round on its way is not still.
 
     A waypoint followed by a gripper action or ending the demo holds 0 s, so the
     stop and the gripper change (or the last frame) are one keyframe, not two.
@@ -125,7 +126,7 @@ def rest(world, task, q_final, on_step, on_arrive, hold: float, timeout: float =
     start, still_since = world.sim_time, None
     while world.sim_time - start < timeout:
         _step(world, task, on_step)
-        if np.max(np.abs(world.joint_velocities())) < SETTLE_VELOCITY:
+        if world.arm_reference_settled and np.max(np.abs(world.joint_velocities())) < SETTLE_VELOCITY:
             if still_since is None:
                 still_since = world.sim_time
                 on_arrive()

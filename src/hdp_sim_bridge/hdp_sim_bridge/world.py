@@ -200,6 +200,13 @@ class PandaWorld:
         self._speed_cap = panda.VELOCITY_LIMITS if max_velocity is None else np.minimum(
             np.broadcast_to(np.asarray(max_velocity, dtype=float), (7,)), panda.VELOCITY_LIMITS)
 
+    @property
+    def arm_reference_settled(self) -> bool:
+        """Whether the arm's reference has come to rest on the commanded target. The joints
+        follow it there unless something blocks them (pushing against a hinge); a joint
+        turning round is still for an instant, but its reference is not settled."""
+        return bool(np.all(np.abs(self._goal - self._q_ref) < 1e-9) and np.all(self._v_ref == 0))
+
     def _advance_reference(self) -> None:
         error = self._goal - self._q_ref
         dv = ACCELERATION_LIMITS * TIME_STEP
