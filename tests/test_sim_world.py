@@ -128,7 +128,7 @@ def test_streamed_targets_are_followed_without_lag(world):
 def test_a_streamed_trajectory_the_arm_fell_behind_is_caught_up(world):
     # A ramp that starts at 0.8 rad/s from rest: no arm follows that velocity step, so it
     # falls behind, then must catch up rather than trail by v^2 / (2 a) (0.085 rad on joint 2,
-    # which swept the fingers 1-4 cm off the experts' straight descents onto a cup).
+    # which swept the fingers 1-2 cm off the experts' straight descents onto a cup).
     direction = np.array([0, 1, 0, 1, 0, 0, 0])
     lag = []
     for k in range(1, 241):                                     # 1 s
