@@ -1,6 +1,7 @@
 """hdp_sim_bridge.world: joint limits, determinism, the gripper and the kinematic grasp."""
 
 import math
+import types
 
 import numpy as np
 import pybullet
@@ -161,14 +162,12 @@ def test_a_timed_path_with_a_sharp_corner_is_followed_closely(world):
 def test_rest_waits_for_the_arm_at_its_target_not_for_a_turnaround(world):
     # Streamed away from HOME at 0.8 rad/s on joint 2, then told to rest at HOME: the joint
     # turns round, all joints still for an instant, before it gets back.
-    class NoTask:
-        def on_step(self, world):
-            pass
+    no_task = types.SimpleNamespace(on_step=lambda world: None)
     for k in range(1, 73):                                       # 0.3 s
         world.command_arm(panda.HOME + 0.8 * k * TIME_STEP * np.array([0, 1, 0, 0, 0, 0, 0]))
         world.step()
     arrived = []
-    experts.rest(world, NoTask(), panda.HOME, lambda: None, lambda: arrived.append(world.joint_positions()),
+    experts.rest(world, no_task, panda.HOME, lambda: None, lambda: arrived.append(world.joint_positions()),
                  hold=0.0)
     assert len(arrived) == 1
     assert np.abs(arrived[0] - panda.HOME).max() < 0.002
