@@ -361,8 +361,10 @@ def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATIO
     `acceleration`, the curvature spread over the two segments either side:
     a dense path turns gently at speed, and a planner's sharp corner is taken
     slowly. Streamed as a cubic spline through the waypoints at the
-    velocities of `path_velocities`, the timed path is followed by the
-    simulated arm to within a few mrad.
+    velocities of `path_velocities`, a planner's timed path is followed by
+    the simulated arm to within a few mrad. A path that zig-zags between
+    waypoints is slowed at every reversal but followed less closely, as the
+    spline stops the joint at each one.
     """
     path = np.asarray(path, dtype=float)
     acceleration = np.broadcast_to(np.asarray(acceleration, dtype=float), (7,))
