@@ -256,9 +256,6 @@ def test_controller_pairs_the_gripper_goal_by_stamp_and_reports_done():
     out = controller.step(0.05)
     assert _kinds(out) == ['arm', 'info']
     end = np.asarray(out[0].msg.points[-1].positions)
-    # busy: a second NBP is refused with its own stamp
-    busy = controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=4), now_s=0.1)
-    assert busy[1].msg.stamp.sec == 4 and 'busy with segment 3.000' in busy[1].msg.frame_id
     controller.on_joint_state(joint_state_msg(end))
     out = controller.step(30.0)
     assert _kinds(out) == ['gripper'] and conversions.parse_joint_trajectory(out[0].msg)[1].tolist() == [[0.0, 0.0]]
@@ -280,6 +277,30 @@ def test_controller_without_a_gripper_goal_keeps_the_gripper_after_a_short_wait(
     out = controller.step(PAIRING_WAIT_S + 0.01)
     assert _kinds(out) == ['info', 'arm', 'info'] and 'gripper stays open' in out[0].msg
     assert controller.running[1].gripper_open is None
+
+
+def test_a_newer_nbp_supersedes_the_running_segment_and_a_repeat_is_ignored():
+    """After a reset (sim time restarts) or a result timeout the planner sends its next NBP while
+    the controller still runs the last segment: the newer one takes over at once."""
+    controller = _controller()
+    goal = reachable_goal()
+    controller.on_gripper_goal(gripper_goal_msg(False, stamp_sec=3))
+    controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=10.0)
+    assert _kinds(controller.step(10.05)) == ['arm', 'info']
+    repeat = controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=10.1)
+    assert _kinds(repeat) == ['error'] and 'repeated' in repeat[0].msg and controller.running is not None
+    newer = controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=1), now_s=0.2)    # after a reset
+    assert _kinds(newer) == ['error', 'result'] and newer[1].msg.stamp.sec == 3
+    assert newer[1].msg.frame_id == 'failed: superseded by segment 1.000'
+    assert controller.running is None
+    out = controller.step(0.8)
+    assert _kinds(out) == ['info', 'arm', 'info'] and 'segment 1.000' in out[2].msg
+    # a pending segment is superseded the same way, its gripper goal forgotten
+    controller.on_gripper_goal(gripper_goal_msg(True, stamp_sec=6))
+    controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=6), now_s=1.0)
+    invalid = controller.on_nbp(nbp((math.nan, 0, 1), (1, 0, 0, 0), stamp_sec=7), now_s=1.01)
+    assert [m.msg.frame_id.split(':')[0] for m in invalid if m.kind == 'result'] == ['failed', 'failed']
+    assert controller.pending is None and controller.gripper_goals == {}
 
 
 def test_controller_refuses_without_joint_states_or_camera():

@@ -243,8 +243,10 @@ class SegmentController:
     """controller_node's state: the latest observations, the segment waiting or running.
 
     policy: a LowLevelPolicy. needs_points: whether it looks at the front camera (all but
-    'planner'). One segment at a time: an NBP that arrives while one is pending or running is
-    refused as busy (the planner sends the next only after the result).
+    'planner'). One segment at a time. The planner sends the next NBP only after the last one's
+    result, so an NBP that arrives while a segment is pending or running means the planner has
+    moved on (it stopped waiting, or the simulator was reset for a new episode, restarting sim
+    time): the new NBP supersedes that segment, which ends 'failed: superseded by ...'.
     """
 
     def __init__(self, policy, needs_points: bool, velocity_scale: float, segment_timeout_s: float,
@@ -283,15 +285,27 @@ class SegmentController:
     # -- segments -------------------------------------------------------------------------
     def on_nbp(self, msg, now_s: float) -> list[Out]:
         """Validate an NBP and keep it until step() starts it (after its gripper goal)."""
-        if self.pending is not None or self.running is not None:
-            other = self.pending.nbp.header.stamp if self.pending is not None else self.running[0]
-            return self._refuse(msg.header.stamp, f'busy with segment {stamp_label(other)}')
+        out = self._supersede(msg.header.stamp)
+        if self.pending is not None or self.running is not None:       # the same NBP again
+            return out
         try:
             goal = validate_nbp(msg)
         except SegmentRefused as err:
-            return self._refuse(msg.header.stamp, str(err))
+            return out + self._refuse(msg.header.stamp, str(err))
         self.pending = _Pending(msg, goal, now_s)
-        return []
+        return out
+
+    def _supersede(self, stamp) -> list[Out]:
+        """End the pending or running segment for a newer NBP (``stamp``); one with the same stamp
+        is a repeat and ignored. The arm takes the new segment's trajectory from where it is."""
+        current = self.pending.nbp.header.stamp if self.pending is not None else (
+            self.running[0] if self.running is not None else None)
+        if current is None:
+            return []
+        if stamp_ns(current) == stamp_ns(stamp):
+            return [Out('error', f'ignored a repeated NBP for segment {stamp_label(stamp)}')]
+        self.pending = self.running = None
+        return self._refuse(current, f'superseded by segment {stamp_label(stamp)}')
 
     def step(self, now_s: float) -> list[Out]:
         """Advance the pending or running segment; call it often (the node's timer)."""
