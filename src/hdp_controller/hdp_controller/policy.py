@@ -1,8 +1,8 @@
 """RK-Diffuser and its learned ablations as LowLevelPolicy objects.
 
   rkd      sample both diffusers, refine the joints onto the poses (the paper's method)
-  joint    the joint diffuser alone: no distillation at inference, no refinement
-  pose_ik  the pose diffuser, then IK per waypoint (baselines.PoseIKPolicy)
+  joint    the joint diffuser alone: no distillation at inference, no refinement, no smoothing
+  pose_ik  the pose diffuser (smoothed), then IK per waypoint (baselines.PoseIKPolicy)
 
 All three come from one checkpoint, so they see the same conditions.
 """
@@ -19,7 +19,7 @@ import torch
 from . import checkpoint
 from .baselines import PlannerPolicy, PoseIKPolicy
 from .low_level import PlanResult, Scene, SegmentRequest
-from .refine import goal_error, refine
+from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses
 from .rk_diffuser import RKDiffuser, as_batch
 
 METHODS = ('rkd', 'planner', 'pose_ik', 'joint')
@@ -71,10 +71,11 @@ class _Sampling:
 
 
 class PoseSampler(_Sampling):
-    """The pose diffuser alone, as PoseIKPolicy's pose_sampler."""
+    """The pose diffuser alone, as PoseIKPolicy's pose_sampler, smoothed as RK-Diffuser's
+    refinement smooths it (the two then differ only in IK against refinement)."""
 
     def __call__(self, request: SegmentRequest) -> np.ndarray:
-        return self._sample(request, ('pose',))['poses'][0].numpy()
+        return smooth_poses(self._sample(request, ('pose',))['poses'], SMOOTHING_PASSES)[0].numpy()
 
 
 class RKDPolicy(_Sampling):
