@@ -105,7 +105,7 @@ def _restart_stuck(path: torch.Tensor, targets, solve) -> torch.Tensor:
     for b, t in (miss > 1).nonzero().tolist():
         target = (targets[0][b, t:t + 1], targets[1][b, t:t + 1])
         again = solve(path[b, t:t + 1], target, steps=_RESTART_STEPS)
-        if _miss(again, target)[0] < _miss(path[b, t + 1:t + 2], target)[0]:
+        if _miss(again, target)[0] < miss[b, t]:
             path[b, t + 1] = again[0]
     return path
 
@@ -133,9 +133,9 @@ def smooth(path: torch.Tensor, passes: int) -> torch.Tensor:
 def smooth_poses(poses: torch.Tensor, passes: int) -> torch.Tensor:
     """(B, T, 7) xyz + quat xyzw -> smoothed the same way, each quaternion first put on its
     predecessor's side (q and -q are one rotation) and renormalised after."""
-    quat = poses[..., 3:].clone()
-    for t in range(1, quat.shape[1]):
-        quat[:, t] *= torch.where((quat[:, t] * quat[:, t - 1]).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+    quat = poses[..., 3:]
+    flips = torch.where((quat[:, 1:] * quat[:, :-1]).sum(-1, keepdim=True) < 0, -1.0, 1.0).cumprod(1)
+    quat = torch.cat([quat[:, :1], quat[:, 1:] * flips], 1)
     smoothed = smooth(torch.cat([poses[..., :3], quat], -1), passes)
     return torch.cat([smoothed[..., :3], torch.nn.functional.normalize(smoothed[..., 3:], dim=-1)], -1)
 
