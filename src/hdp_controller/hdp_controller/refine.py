@@ -36,8 +36,8 @@ import torch
 
 from hdp_msgs_py import panda
 
-from .kinematics import (ROBOT_BASE, fk_pose, forward_kinematics, matrix_to_quat, panda_chain, pose_error,
-                         quat_to_matrix)
+from .kinematics import (ROBOT_BASE, continuous_quats, fk_pose, forward_kinematics, matrix_to_quat, panda_chain,
+                         pose_error, quat_to_matrix)
 
 _LIMIT_MARGIN = 1e-3      # rad inside the limits
 # A joint trajectory that moves a joint further than this between two of its 64
@@ -133,10 +133,7 @@ def smooth(path: torch.Tensor, passes: int) -> torch.Tensor:
 def smooth_poses(poses: torch.Tensor, passes: int) -> torch.Tensor:
     """(B, T, 7) xyz + quat xyzw -> smoothed the same way, each quaternion first put on its
     predecessor's side (q and -q are one rotation) and renormalised after."""
-    quat = poses[..., 3:]
-    flips = torch.where((quat[:, 1:] * quat[:, :-1]).sum(-1, keepdim=True) < 0, -1.0, 1.0).cumprod(1)
-    quat = torch.cat([quat[:, :1], quat[:, 1:] * flips], 1)
-    smoothed = smooth(torch.cat([poses[..., :3], quat], -1), passes)
+    smoothed = smooth(torch.cat([poses[..., :3], continuous_quats(poses[..., 3:])], -1), passes)
     return torch.cat([smoothed[..., :3], torch.nn.functional.normalize(smoothed[..., 3:], dim=-1)], -1)
 
 
