@@ -5,6 +5,9 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 PKGS   := hdp_msgs_py hdp_planner hdp_controller hdp_sim_bridge
 STAMP  := $(VENV)/.stamp
+# ROS 2 interface packages the registry has no wheels for, built with rosidl.
+ROS_IFACES := src/hdp_msgs_py/ros_interfaces
+IFACE_STAMP := $(VENV)/.ros_interfaces
 
 .PHONY: setup test demo clean distclean FORCE
 
@@ -14,9 +17,10 @@ STAMP  := $(VENV)/.stamp
 PY_PKGS := $(wildcard $(foreach p,$(PKGS),src/$(p)/$(p)/__init__.py))
 PKGSET  := $(VENV)/.pkgset
 
-# Fast (no pip call) once the stamp is newer than requirements.txt, every
-# package's setup.py and the package set.
-setup: $(STAMP)
+# Fast (no pip call, no build) once the stamps are newer than the
+# requirements, every package's setup.py, the package set and the interface
+# sources.
+setup: $(STAMP) $(IFACE_STAMP)
 
 $(PKGSET): FORCE
 	@mkdir -p $(@D)
@@ -25,10 +29,15 @@ $(PKGSET): FORCE
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 
-$(STAMP): requirements.txt $(foreach p,$(PKGS),src/$(p)/setup.py) $(PKGSET) | $(PY)
+$(STAMP): requirements.txt requirements-ros.txt $(foreach p,$(PKGS),src/$(p)/setup.py) $(PKGSET) | $(PY)
 	$(PY) -m pip install torch==2.13.0
-	$(PY) -m pip install -r requirements.txt
+	$(PY) -m pip install -r requirements-ros.txt -r requirements.txt
 	$(PY) -m pip install --no-build-isolation $(foreach p,$(PKGS),-e src/$(p))
+	touch $@
+
+# tf2_msgs and control_msgs into the virtualenv, beside the ROS wheels (~40 s).
+$(IFACE_STAMP): $(STAMP) $(shell find $(ROS_IFACES) -type f)
+	$(ROS_IFACES)/build.sh $(VENV)
 	touch $@
 
 test: setup

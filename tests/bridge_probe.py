@@ -8,6 +8,7 @@ import sys
 import time
 
 import numpy as np
+import rclpy
 
 from hdp_msgs_py import conversions, panda, ros, topics
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
@@ -20,7 +21,8 @@ class Probe(ros.Node):
                      'images': {}, 'tf': []}
         self.joints = None
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joints, 50)
-        self.create_subscription(String, topics.STATUS, lambda m: self.seen['status'].append(m.data), 50)
+        self.create_subscription(String, topics.STATUS, lambda m: self.seen['status'].append(m.data),
+                                 topics.STATUS_QOS)
         self.create_subscription(String, topics.SIM_EPISODE, lambda m: self.seen['episodes'].append(json.loads(m.data)),
                                  topics.LATCHED_QOS)
         self.create_subscription(Bool, topics.SIM_SUCCESS, lambda m: self.seen['success'].append(m.data), 10)
@@ -44,7 +46,7 @@ class Probe(ros.Node):
     def spin_for(self, seconds, until=lambda: False):
         end = time.monotonic() + seconds
         while time.monotonic() < end and not until():
-            ros.spin_once(self, timeout_sec=0.02)
+            rclpy.spin_once(self, timeout_sec=0.02)
 
 
 def main():
@@ -52,7 +54,8 @@ def main():
     probe = Probe()
     facts = {}
     probe.spin_for(30, until=lambda: probe.joints is not None and probe.seen['episodes']
-                   and len(probe.seen['images']) == 3 and probe.seen['tf'])
+                   and len(probe.seen['images']) == 3 and probe.seen['tf']
+                   and all(p.get_subscription_count() for p in (probe.arm, probe.gripper, probe.reset)))
     facts['first_episode'] = probe.seen['episodes'][-1]
     start = probe.joints.copy()
 
@@ -86,7 +89,7 @@ def main():
         status=probe.seen['status'], success_reports=len(probe.seen['success']))
     print(json.dumps(facts), flush=True)
     probe.destroy_node()
-    ros.try_shutdown()
+    rclpy.try_shutdown()
 
 
 if __name__ == '__main__':

@@ -7,8 +7,7 @@ from another process, never on shared memory.
     python dds_procs.py sub string|trajectory|image [--qos ...] [--expect N]
     python dds_procs.py raising_sub        # callback raises on the first message
     python dds_procs.py params --ros-args ...
-    python dds_procs.py wrong_type
-    python dds_procs.py raw_truncated      # plain cyclonedds writer, broken payloads
+    python dds_procs.py foreign_writer     # plain cyclonedds writer, a string that is not UTF-8
 """
 
 import argparse
@@ -18,10 +17,13 @@ import sys
 import time
 
 import numpy as np
+import rclpy
 
 from hdp_msgs_py import conversions, ros
-from hdp_msgs_py.msg import Image, String, TFMessage, TransformStamped
-from hdp_msgs_py.ros import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from hdp_msgs_py.msg import String, TFMessage, TransformStamped
+from rclpy.executors import ExternalShutdownException
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 QOS = {
     'reliable': QoSProfile(depth=10),
@@ -69,9 +71,9 @@ def spin_until(node, done, timeout: float) -> None:
     """Spin until done() or timeout; a shutdown (SIGINT/SIGTERM) just ends the wait."""
     end = time.monotonic() + timeout
     try:
-        while ros.ok() and time.monotonic() < end and not done():
-            ros.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ros.ExternalShutdownException):
+        while rclpy.ok() and time.monotonic() < end and not done():
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
         return      # shut down from outside: the caller reports what it saw
 
 
@@ -88,7 +90,7 @@ def run_pub(args):
         msg = make(args.kind, i)
         pub.publish(msg)
         sent.append(summary(args.kind, msg))
-        ros.spin_once(node, timeout_sec=1.0 / args.rate)
+        rclpy.spin_once(node, timeout_sec=1.0 / args.rate)
     emit(sent=sent)
     spin_until(node, lambda: False, args.linger)
 
@@ -136,7 +138,7 @@ def run_clock(args):
     node = ros.Node('fake_sim')
     pub = node.create_publisher(Clock, '/clock', 10)
     start = time.monotonic()
-    while ros.ok() and time.monotonic() - start < args.timeout:
+    while rclpy.ok() and time.monotonic() - start < args.timeout:
         sim_ns = 1000 * 10**9 + int((time.monotonic() - start) * 10 * 1e9)
         pub.publish(Clock(clock=Time(sec=sim_ns // 10**9, nanosec=sim_ns % 10**9)))
         time.sleep(0.01)
@@ -144,49 +146,41 @@ def run_clock(args):
 
 def run_sim_time(args):
     """With use_sim_time, now() and timers follow /clock."""
-    node = ros.Node('sim_time_node', parameter_overrides=[ros.Parameter('use_sim_time', value=True)])
+    node = ros.Node('sim_time_node', parameter_overrides=[Parameter('use_sim_time', value=True)])
     ticks = []
     node.create_timer(1.0, lambda: ticks.append(node.get_clock().now().nanoseconds / 1e9))
     spin_until(node, lambda: len(ticks) >= 5, args.timeout)
     emit(ticks=ticks)
 
 
-def run_wrong_type(args):
-    node = ros.Node('wrong_type_node')
-    pub = node.create_publisher(String, '/hdp/instruction', 10)
-    try:
-        pub.publish(Image())
-    except TypeError as err:
-        emit(error=str(err))
-    else:
-        emit(error=None)
+def run_foreign_writer(args):
+    """A peer on another middleware (plain cyclonedds, no ROS) sends a string that is
+    not UTF-8, then a good one."""
+    import os
+    from dataclasses import dataclass
 
-
-def run_raw_truncated(args):
-    """Send broken payloads, then a good one, with cyclonedds' C calls."""
     from cyclonedds._clayer import ddspy_write
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.idl import IdlStruct
     from cyclonedds.pub import DataWriter
+    from cyclonedds.topic import Topic
 
-    from hdp_msgs_py import cdr
-    from hdp_msgs_py.dds import default_context
-    from hdp_msgs_py.dds.qos import to_dds
-    node = ros.Node('raw_writer')
-    writer = DataWriter(default_context.participant, default_context.dds_topic('rt/hdp/instruction', String),
-                        qos=to_dds(QOS['reliable']))
+    @dataclass
+    class String_(IdlStruct, typename='std_msgs::msg::dds_::String_'):
+        data: str
+
+    import cyclone_loopback
+    _domain, participant = cyclone_loopback.participant(int(os.environ['ROS_DOMAIN_ID']))
+    writer = DataWriter(participant, Topic(participant, 'rt/hdp/instruction', String_),
+                        qos=Qos(Policy.Reliability.Reliable(0), Policy.History.KeepLast(10)))
     deadline = time.monotonic() + 10
     while not writer.get_matched_subscriptions() and time.monotonic() < deadline:
         time.sleep(0.05)
-    good = cdr.serialize(String(data='after the broken ones'), pad_to=4)
-    # Cyclone refuses structurally broken CDR itself (truncated, bad lengths):
-    # record what it returns, then send what it lets through but ROS cannot
-    # decode: a string that is not UTF-8.
-    refused = [ddspy_write(writer._ref, payload)
-               for payload in (good[:6] + bytes(2), b'\x00\x01\x00\x00\xff\xff\xff\x7f')]
     not_utf8 = b'\x00\x01\x00\x00\x03\x00\x00\x00\xff\xfe\x00\x00'
-    accepted = [ddspy_write(writer._ref, payload) for payload in (not_utf8, good)]
+    accepted = [ddspy_write(writer._ref, not_utf8)]
+    writer.write(String_(data='after the broken one'))
     time.sleep(1.0)
-    emit(refused=refused, accepted=accepted)
-    node.destroy_node()
+    emit(accepted=accepted)
 
 
 def main():
@@ -207,7 +201,7 @@ def main():
     try:
         globals()[f'run_{args.role}'](args)
     finally:
-        ros.try_shutdown()
+        rclpy.try_shutdown()
 
 
 if __name__ == '__main__':

@@ -10,12 +10,13 @@ import time
 from dataclasses import dataclass
 
 from cyclonedds.core import InstanceState, Policy, Qos, SampleState, ViewState
-from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct, types
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds._clayer import ddspy_take
 from rosbags.typesys import Stores, get_typestore
+
+import cyclone_loopback
 
 
 @dataclass
@@ -38,13 +39,7 @@ class ParticipantEntitiesInfo_(IdlStruct, typename='rmw_dds_common::msg::dds_::P
 
 
 domain_id = int(os.environ['ROS_DOMAIN_ID'])
-# keep the Domain object: its configuration lives only as long as it does
-domain = Domain(domain_id, '<CycloneDDS><Domain Id="any"><General><Interfaces>'
-                '<NetworkInterface address="127.0.0.1"/></Interfaces><AllowMulticast>false</AllowMulticast>'
-                '</General><Discovery><ParticipantIndex>auto</ParticipantIndex>'
-                '<MaxAutoParticipantIndex>64</MaxAutoParticipantIndex><Peers><Peer Address="localhost"/>'
-                '</Peers></Discovery></Domain></CycloneDDS>')
-participant = DomainParticipant(domain_id)
+domain, participant = cyclone_loopback.participant(domain_id)
 topic = Topic(participant, 'ros_discovery_info', ParticipantEntitiesInfo_)
 reader = DataReader(participant, topic, qos=Qos(Policy.Reliability.Reliable(0), Policy.History.KeepAll,
                                                 Policy.Durability.TransientLocal))

@@ -17,11 +17,12 @@ from dataclasses import dataclass
 
 from cyclonedds._clayer import ddspy_take
 from cyclonedds.core import InstanceState, Policy, Qos, SampleState, ViewState
-from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct, types
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from rosbags.typesys import Stores, get_typestore
+
+import cyclone_loopback
 
 
 @dataclass
@@ -117,13 +118,7 @@ def summary(topic: str, msg) -> dict:
 
 def main(timeout_s: float) -> int:
     domain_id = int(os.environ['ROS_DOMAIN_ID'])
-    # Loopback only, like the graph; keep the Domain object alive: its configuration lives with it.
-    _domain = Domain(domain_id, '<CycloneDDS><Domain Id="any"><General><Interfaces>'
-                     '<NetworkInterface address="127.0.0.1"/></Interfaces><AllowMulticast>false</AllowMulticast>'
-                     '</General><Discovery><ParticipantIndex>auto</ParticipantIndex>'
-                     '<MaxAutoParticipantIndex>64</MaxAutoParticipantIndex><Peers><Peer Address="localhost"/>'
-                     '</Peers></Discovery></Domain></CycloneDDS>')
-    participant = DomainParticipant(domain_id)
+    _domain, participant = cyclone_loopback.participant(domain_id)     # loopback only, like the graph
     qos = Qos(Policy.Reliability.Reliable(0), Policy.History.KeepLast(10))
     readers = {name: DataReader(participant, Topic(participant, name, idl), qos=qos)
                for name, (idl, _) in TOPICS.items()}

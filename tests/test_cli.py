@@ -1,18 +1,22 @@
-"""`hdp topic` / `hdp node` against real nodes in other processes.
+"""`hdp topic` / `hdp node` against real nodes in other processes, and the YAML they read and write.
 
 The discovery checks read `ros_discovery_info` with rosbags' deserialiser, an
-implementation that knows nothing of ours, the way `ros2 node list` does.
+implementation that knows nothing of rclpy's, the way `ros2 node list` does.
 """
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 
+from hdp_msgs_py.message_yaml import message_from_yaml, message_to_yaml
 from test_dds_processes import finish, start
 
 HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
@@ -21,6 +25,36 @@ HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
 def hdp(domain: int, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     return subprocess.run([*HDP, *args], env=env, text=True, capture_output=True, timeout=timeout)
+
+
+def hdp_popen(domain: int, *args: str) -> subprocess.Popen:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+    return subprocess.Popen([*HDP, *args], env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def echo_until(echo: subprocess.Popen, done, timeout: float) -> list[dict]:
+    """The documents a running `hdp topic echo` prints, until done(documents so far)."""
+    watchdog = threading.Timer(timeout, echo.kill)   # a silent echo then ends the read with EOF
+    watchdog.start()
+    docs, lines = [], []
+    try:
+        for line in echo.stdout:
+            if line != '---\n':
+                lines.append(line)
+                continue
+            docs.append(yaml.safe_load(''.join(lines)))
+            lines = []
+            if done(docs):
+                break
+    finally:
+        watchdog.cancel()
+    return docs
+
+
+def interrupt(proc: subprocess.Popen) -> str:
+    """Ctrl-C a CLI process; its stderr."""
+    proc.send_signal(signal.SIGINT)
+    return proc.communicate(timeout=20)[1]
 
 
 def test_help_lists_every_command():
@@ -45,6 +79,44 @@ def test_topic_pub_refuses_bad_input(ros_domain):
     assert result.returncode == 1 and "has no field 'colour'" in result.stderr
     result = hdp(ros_domain, 'topic', 'pub', '--once', '/x', 'std_msgs/msg/Nope', '{}')
     assert result.returncode == 1 and 'unknown message type' in result.stderr
+    assert 'Traceback' not in result.stderr
+
+
+def test_pub_values_fill_nested_messages_and_arrays_of_messages():
+    msg = message_from_yaml('trajectory_msgs/msg/JointTrajectory',
+                            '{header: {frame_id: world}, joint_names: [j1, j2], '
+                            'points: [{positions: [1, 2.5], time_from_start: {sec: 2}}, {positions: [3, 4]}]}')
+    assert msg.header.frame_id == 'world'
+    assert [list(p.positions) for p in msg.points] == [[1.0, 2.5], [3.0, 4.0]]
+    assert msg.points[0].time_from_start.sec == 2
+    doc = yaml.safe_load(message_to_yaml(msg))
+    assert doc['joint_names'] == ['j1', 'j2'] and doc['points'][1]['positions'] == [3.0, 4.0]
+    # YAML writes 1 for 1.0; rclpy's float fields take only floats
+    assert message_from_yaml('geometry_msgs/msg/PoseStamped', '{pose: {position: {x: 1}}}').pose.position.x == 1.0
+
+
+@pytest.mark.parametrize('type_name, values, error', [
+    ('std_msgs/msg/String', '{data: [1, 2]}', "String.data: The 'data' field must be of type 'str'"),
+    ('trajectory_msgs/msg/JointTrajectory', '{points: [{colour: red}]}', "has no field 'colour'"),
+    ('trajectory_msgs/msg/JointTrajectory', '{points: {positions: [1]}}', 'expected a list'),
+    ('sensor_msgs/msg/Image', '{height: -1}', 'Image.height'),
+    ('std_msgs/msg/String', "{data: 'unclosed", 'not valid YAML'),
+    ('std_msgs/msg/String', 'just text', 'needs a mapping'),
+    ('std_msgs/msg/Nope', '{}', 'unknown message type'),
+    ('nopkg/msg/String', '{}', 'unknown message type'),
+    ('std_msgs/srv/String', '{}', 'unknown message type'),
+])
+def test_pub_values_are_checked(type_name, values, error):
+    with pytest.raises(ValueError) as err:
+        message_from_yaml(type_name, values)
+    assert error in str(err.value)
+
+
+def test_echo_yaml_truncates_long_arrays_unless_full_length():
+    msg = message_from_yaml('sensor_msgs/msg/Image', '{height: 1, width: 40, data: [%s]}' % ', '.join(['7'] * 40))
+    data = yaml.safe_load(message_to_yaml(msg))['data']
+    assert data[:32] == [7] * 32 and data[32:] == ['... (40 items)']
+    assert yaml.safe_load(message_to_yaml(msg, None))['data'] == [7] * 40
 
 
 def test_topic_echo_once_finds_the_type_and_prints_yaml(ros_domain):
@@ -71,25 +143,41 @@ def test_topic_echo_latched_tf_static_and_timeout(ros_domain):
     pub.communicate()
 
 
+def test_topic_echo_streams_until_ctrl_c(ros_domain):
+    pub = start(ros_domain, 'pub', 'string', '--count', '300', '--rate', '10')
+    echo = hdp_popen(ros_domain, 'topic', 'echo', '/hdp/instruction')
+    docs = echo_until(echo, lambda docs: len(docs) >= 3, 40)
+    err = interrupt(echo)
+    pub.kill()
+    pub.communicate()
+    assert len(docs) == 3 and all(d['data'].startswith('open the drawer #') for d in docs), err
+    assert echo.returncode == 0 and 'Traceback' not in err, err
+
+
 def test_topic_list_and_node_list_see_other_processes(ros_domain):
     pub = start(ros_domain, 'pub', 'image', '--count', '400', '--rate', '10')
     sub = start(ros_domain, 'sub', 'string', '--timeout', '60', '--expect', '1000')
     time.sleep(2.0)
-    topics = hdp(ros_domain, 'topic', 'list', '-t')
-    nodes = hdp(ros_domain, 'node', 'list')
+    running = [hdp_popen(ros_domain, *args) for args in (('topic', 'list', '-t'), ('node', 'list'),
+                                                          ('node', 'list', '-a'))]
+    topics, nodes, every_node = [p.communicate(timeout=60)[0].split('\n') for p in running]
     pub.kill()
     sub.kill()
     pub.communicate()
     sub.communicate()
-    assert '/camera/front/color/image_raw [sensor_msgs/msg/Image]' in topics.stdout.splitlines()
-    assert '/hdp/instruction [std_msgs/msg/String]' in topics.stdout.splitlines()
-    assert {'/test_publisher', '/test_subscriber'} <= set(nodes.stdout.split())
-    assert not any(n.startswith('/_hdp_cli') for n in nodes.stdout.split())   # hidden
+    assert '/camera/front/color/image_raw [sensor_msgs/msg/Image]' in topics
+    assert '/hdp/instruction [std_msgs/msg/String]' in topics
+    assert {'/test_publisher', '/test_subscriber'} <= set(nodes)
+    assert not any(n.startswith('/_hdp_cli') for n in nodes)   # hidden
+    assert {'/test_publisher', '/test_subscriber'} <= set(every_node)
+    assert any(n.startswith('/_hdp_cli_') for n in every_node)  # -a: hidden ones too
 
 
 def test_ros_discovery_info_decodes_with_rosbags(ros_domain):
     """What `ros2 node list` reads, decoded by an independent implementation."""
     sub = start(ros_domain, 'sub', 'string', '--timeout', '60', '--expect', '1000')
+    # the reader discovers by unicast only: it finds the participants already up when it starts
+    time.sleep(2.0)
     reader = subprocess.run([sys.executable, str(Path(__file__).with_name('discovery_reader.py'))],
                             env=dict(os.environ, ROS_DOMAIN_ID=str(ros_domain)), text=True,
                             capture_output=True, timeout=60)
@@ -102,23 +190,21 @@ def test_ros_discovery_info_decodes_with_rosbags(ros_domain):
     assert len(entry['readers']) >= 1 and all(len(g) == 32 for g in entry['readers'])
 
 
-
 def test_planner_node_executable_acknowledges_an_instruction(ros_domain):
-    import signal
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
     node = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
                              '-p', 'use_sim_time:=false'], env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    echo = subprocess.Popen([*HDP, 'topic', 'echo', '--once', '--timeout', '20', '/hdp/status',
-                             'std_msgs/msg/String'], env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # /hdp/status keeps its history (transient local): the acknowledgement follows 'ready'
+    echo = hdp_popen(ros_domain, 'topic', 'echo', '--timeout', '20', '/hdp/status', 'std_msgs/msg/String')
     time.sleep(2.0)
     result = hdp(ros_domain, 'topic', 'pub', '--once', '-w', '2', '/hdp/instruction',
                  'std_msgs/msg/String', "{data: 'open the drawer'}")
-    out, err = echo.communicate(timeout=30)
+    docs = echo_until(echo, lambda docs: "'open the drawer'" in docs[-1]['data'], 30)
+    err = interrupt(echo)
     node.send_signal(signal.SIGINT)
     node.communicate(timeout=10)
     assert result.returncode == 0, result.stderr
     assert echo.returncode == 0, err
-    assert "'open the drawer'" in yaml.safe_load(out.split('---')[0])['data']
+    assert docs and "'open the drawer'" in docs[-1]['data'], (docs, err)
     assert node.returncode == 0

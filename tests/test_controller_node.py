@@ -14,6 +14,7 @@ import sys
 import time
 import numpy as np
 import pytest
+import rclpy
 import torch
 
 from hdp_msgs_py import conversions, panda, topics
@@ -304,21 +305,32 @@ def test_a_newer_nbp_supersedes_the_running_segment_and_a_repeat_is_ignored():
 
 
 def test_controller_refuses_without_joint_states_or_camera():
-    from hdp_controller.controller_logic import SegmentController
+    from hdp_controller.controller_logic import STARTUP_WAIT_S, SegmentController
     goal = reachable_goal()
     blind = SegmentController(FakePolicy([panda.HOME]), False, 0.5, 5.0)
     blind.on_joint_state(JointState(name=list(panda.FINGER_JOINTS), position=[0.04, 0.04]))   # fingers only
     blind.on_gripper_goal(gripper_goal_msg(True))
     blind.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
-    reason = blind.step(0.1)[1].msg.frame_id
+    assert blind.step(0.1) == []                     # the first joint state may still be on its way
+    reason = blind.step(STARTUP_WAIT_S + 0.01)[1].msg.frame_id
     assert reason.startswith('failed: no usable /joint_states received yet (joint state lacks')
     assert 'panda_joint1' in reason
-    from hdp_controller.controller_logic import CAMERA_WAIT_S
     learned = _controller(needs_points=True)
     learned.on_gripper_goal(gripper_goal_msg(True))
     learned.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
     assert learned.step(0.1) == []                   # the first frame may still be on its way
-    assert 'no front camera depth' in learned.step(CAMERA_WAIT_S + 0.01)[1].msg.frame_id
+    assert 'no front camera depth' in learned.step(STARTUP_WAIT_S + 0.01)[1].msg.frame_id
+
+
+def test_an_nbp_that_beats_the_first_joint_state_waits_for_it():
+    from hdp_controller.controller_logic import SegmentController
+    goal = reachable_goal()
+    controller = SegmentController(FakePolicy([panda.HOME]), False, 0.5, 5.0)
+    controller.on_gripper_goal(gripper_goal_msg(True))
+    controller.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
+    assert controller.step(1.0) == []
+    controller.on_joint_state(joint_state_msg(panda.HOME))
+    assert [out.kind for out in controller.step(1.1)] == ['arm', 'info']
 
 
 def test_controller_builds_front_camera_points_for_learned_methods():
@@ -377,9 +389,10 @@ def probe() -> None:
     ros.init(args=sys.argv)
     node = ros.Node('controller_probe')
     seen = {'status': [], 'trajectories': [], 'results': [], 'joints': None}
-    node.create_subscription(String, topics.STATUS, lambda m: seen['status'].append(m.data), 50)
-    node.create_subscription(JointTrajectory, topics.ARM_TRAJECTORY, seen['trajectories'].append, 10)
-    node.create_subscription(Header, topics.SEGMENT_RESULT, seen['results'].append, 10)
+    node.create_subscription(String, topics.STATUS, lambda m: seen['status'].append(m.data), topics.STATUS_QOS)
+    trajectory_sub = node.create_subscription(JointTrajectory, topics.ARM_TRAJECTORY,
+                                              seen['trajectories'].append, 10)
+    result_sub = node.create_subscription(Header, topics.SEGMENT_RESULT, seen['results'].append, 10)
     node.create_subscription(JointState, topics.JOINT_STATES, lambda m: seen.__setitem__('joints', m), 10)
     pose_pub = node.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
     gripper_pub = node.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS)
@@ -387,13 +400,13 @@ def probe() -> None:
     def spin(seconds, until):
         end = time.monotonic() + seconds
         while time.monotonic() < end and not until():
-            ros.spin_once(node, timeout_sec=0.05)
+            rclpy.spin_once(node, timeout_sec=0.05)
         return until()
 
-    # The controller is up when it subscribes to both inputs and publishes results.
+    # The controller is up when both its inputs and both its outputs are matched with ours.
     assert spin(60, lambda: seen['joints'] is not None and pose_pub.get_subscription_count() > 0
-                and gripper_pub.get_subscription_count() > 0
-                and node.count_publishers(topics.SEGMENT_RESULT) > 0), 'controller_node did not come up'
+                and gripper_pub.get_subscription_count() > 0 and result_sub.get_publisher_count() > 0
+                and trajectory_sub.get_publisher_count() > 0), 'controller_node did not come up'
     time.sleep(0.5)
     facts = {}
     gripper_pub.publish(gripper_goal_msg(False, stamp_sec=1))
@@ -422,7 +435,7 @@ def probe() -> None:
     facts['status'] = seen['status']
     print(json.dumps(facts), flush=True)
     node.destroy_node()
-    ros.try_shutdown()
+    rclpy.try_shutdown()
 
 
 if __name__ == '__main__' and sys.argv[1:2] == ['probe']:

@@ -14,10 +14,9 @@ import numpy as np
 import pytest
 
 from hdp_msgs_py import conversions as cv
-from hdp_msgs_py.msg import (Duration, Header, Image, JointTrajectory, JointTrajectoryPoint,
+from hdp_msgs_py.msg import (USING_RCLPY, Duration, Header, Image, JointTrajectory, JointTrajectoryPoint,
                              Pose, Quaternion, Time, Transform, TransformStamped, Vector3)
 from hdp_msgs_py.msg_spec import PRIMITIVES, STRING
-from hdp_msgs_py.runtime_select import USING_RCLPY
 
 
 def wire_round_trip(msg):

@@ -21,12 +21,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rclpy
 
 import conftest
 from hdp_controller.observation import CAMERA_SIZE
 from hdp_msgs_py import conversions, panda, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointTrajectory, Point, Pose, PoseStamped, Quaternion, String, Time
 from hdp_planner.hierarchy import episode_instruction
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.qos import QoSProfile
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -81,8 +84,8 @@ class Graph:
         ros.init(args=[], domain_id=domain)
         self.node = ros.Node('graph_test')
         for msg_type, topic in self.WATCHED:
-            qos = (topics.SENSOR_QOS if msg_type is Image else topics.LATCHED_QOS if topic == topics.SIM_EPISODE
-                   else ros.QoSProfile(depth=100))
+            qos = {topics.SIM_EPISODE: topics.LATCHED_QOS, topics.STATUS: topics.STATUS_QOS}.get(
+                topic, topics.SENSOR_QOS if msg_type is Image else QoSProfile(depth=100))
             keep = (lambda msg: msg.header) if msg_type is Image else (lambda msg: msg)   # frames: when, not pixels
             self.node.create_subscription(msg_type, topic, lambda msg, topic=topic, keep=keep: self._record(
                 topic, keep(msg)), qos)
@@ -90,7 +93,7 @@ class Graph:
                     for topic in (topics.INSTRUCTION, topics.SIM_RESET, topics.SIM_CAMERAS)}
         self.pub[topics.NEXT_BEST_POSE] = self.node.create_publisher(PoseStamped, topics.NEXT_BEST_POSE,
                                                                      topics.COMMAND_QOS)
-        self._executor = ros.SingleThreadedExecutor()
+        self._executor = SingleThreadedExecutor()
         self._executor.add_node(self.node)
         self._spinning = True
         self._spinner = threading.Thread(target=self._spin, daemon=True)
@@ -98,10 +101,10 @@ class Graph:
 
     # -- this process's node ---------------------------------------------------------------
     def _spin(self):
-        while self._spinning and ros.ok():
+        while self._spinning and rclpy.ok():
             try:
                 self._executor.spin_once(timeout_sec=0.1)
-            except ros.ExternalShutdownException:
+            except ExternalShutdownException:
                 return
 
     def _record(self, topic, msg):
@@ -176,7 +179,7 @@ class Graph:
         self._spinning = False
         self._spinner.join(timeout=5)
         self.node.destroy_node()
-        ros.try_shutdown()
+        rclpy.try_shutdown()
 
     # -- episodes --------------------------------------------------------------------------
     def new_episode(self, task: str, seed: int) -> dict:

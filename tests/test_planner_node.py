@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
 import torch
 
 from hdp_msgs_py import conversions, panda, topics
@@ -389,21 +390,19 @@ def _node(name):
     ros.init(args=sys.argv)
     node = ros.Node(name)
     status = []
-    node.create_subscription(String, topics.STATUS, lambda m: status.append(m.data), 50)
+    node.create_subscription(String, topics.STATUS, lambda m: status.append(m.data), topics.STATUS_QOS)
     return node, status
 
 
 def _spin(node, seconds: float, until=lambda: False) -> bool:
-    from hdp_msgs_py import ros
     end = time.monotonic() + seconds
     while time.monotonic() < end and not until():
-        ros.spin_once(node, timeout_sec=0.05)
+        rclpy.spin_once(node, timeout_sec=0.05)
     return until()
 
 
 def listen(expect: int, seconds: float, *instructions: str) -> None:
     """Publish each instruction once the planner listens; report status lines and NBPs seen."""
-    from hdp_msgs_py import ros
     from hdp_msgs_py.msg import PoseStamped, String
     node, status = _node('planner_listener')
     nbps = []
@@ -418,12 +417,12 @@ def listen(expect: int, seconds: float, *instructions: str) -> None:
     _spin(node, 0.5)
     print(json.dumps({'status': status, 'nbps': len(nbps)}), flush=True)
     node.destroy_node()
-    ros.try_shutdown()
+    rclpy.try_shutdown()
 
 
 def controller() -> None:
     """Stand in for controller_node: answer each NBP 'done' after a moment; report what came."""
-    from hdp_msgs_py import ros, workspace
+    from hdp_msgs_py import workspace
     from hdp_msgs_py.msg import PoseStamped, String
     node, status = _node('fake_controller')
     goals, poses = {}, []
@@ -451,7 +450,7 @@ def controller() -> None:
     _spin(node, 15, lambda: any('segments done' in s for s in status))
     print(json.dumps({'segments': segments, 'status': status}), flush=True)
     node.destroy_node()
-    ros.try_shutdown()
+    rclpy.try_shutdown()
 
 
 if __name__ == '__main__':

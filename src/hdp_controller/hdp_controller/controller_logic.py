@@ -42,9 +42,11 @@ GRIPPER_MOVED = 0.001          # m of width change that shows the fingers respon
 GRIPPER_STILL_S = 0.2          # s without width change after moving: closed on an object
 GRIPPER_TIMEOUT_S = 3.0        # s for the fingers to reach the target or stop
 PAIRING_WAIT_S = 0.5           # s an NBP waits for its gripper goal before keeping the gripper as is
-# s an NBP waits for the first front depth image (a learned method needs its points): right after
-# start-up the first NBP can beat the cameras' first frame (2 Hz of sim time by default).
-CAMERA_WAIT_S = 2.0
+# s an NBP waits for the first /joint_states and, for a learned method (it needs the points), the
+# first front depth image: right after start-up the first NBP can beat the cameras' first frame
+# (2 Hz of sim time by default) and DDS discovery of the joint-state publisher (up to ~2.5 s
+# measured with Fast DDS on loopback).
+STARTUP_WAIT_S = 3.0
 _KEPT_GRIPPER_GOALS = 16       # gripper goals remembered by stamp, for NBPs still to come
 
 
@@ -316,8 +318,9 @@ class SegmentController:
         key = stamp_ns(self.pending.nbp.header.stamp)
         waited = now_s - self.pending.received_s
         unpaired = key not in self.gripper_goals and waited < PAIRING_WAIT_S
-        blind = self.needs_points and (self.depth is None or self.info is None) and waited < CAMERA_WAIT_S
-        if unpaired or blind:
+        blind = self.needs_points and (self.depth is None or self.info is None)
+        starting = (blind or self.state is None) and waited < STARTUP_WAIT_S
+        if unpaired or starting:
             return []
         pending, self.pending = self.pending, None
         return self._start(pending, self.gripper_goals.pop(key, None), now_s)

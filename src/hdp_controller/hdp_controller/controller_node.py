@@ -7,10 +7,9 @@ callback: the executor is single-threaded, so messages wait in their readers mea
 while a segment is planned, so there is nothing to react to until the trajectory is out.
 """
 
-import sys
 
 from hdp_msgs_py import panda, ros, topics
-from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, String, TFMessage
+from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
 
 from .controller_logic import SegmentController
 from .policy import METHODS, load_policy
@@ -18,10 +17,6 @@ from .trajectory import VELOCITY_SCALE
 
 _STEP_S = 0.05
 _CAMERA = 'front'              # RK-Diffuser sees the front camera only, as in training
-
-
-class StartupError(Exception):
-    """A parameter or checkpoint the node cannot run with."""
 
 
 class ControllerNode(ros.Node):
@@ -37,23 +32,23 @@ class ControllerNode(ros.Node):
         p = {name: self.get_parameter(name).value for name in (
             'method', 'checkpoint', 'sampler', 'segment_timeout_s', 'velocity_scale', 'joint_prefix')}
         if p['method'] not in METHODS:
-            raise StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
+            raise ros.StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
         if not 0.0 < p['velocity_scale'] <= 1.0:
-            raise StartupError(f"parameter 'velocity_scale' must be in (0, 1], got {p['velocity_scale']}")
+            raise ros.StartupError(f"parameter 'velocity_scale' must be in (0, 1], got {p['velocity_scale']}")
         if not p['segment_timeout_s'] > 0.0:
-            raise StartupError(f"parameter 'segment_timeout_s' must be > 0, got {p['segment_timeout_s']}")
+            raise ros.StartupError(f"parameter 'segment_timeout_s' must be > 0, got {p['segment_timeout_s']}")
         try:
             policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'])
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
-            raise StartupError(f"cannot load the {p['method']} policy: {err}") from None
+            raise ros.StartupError(f"cannot load the {p['method']} policy: {err}") from None
         prefix = p['joint_prefix']
         self.logic = SegmentController(
             policy, needs_points=p['method'] != 'planner', velocity_scale=p['velocity_scale'],
             segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
             finger_joints=tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS))
 
-        self._status = self.create_publisher(String, topics.STATUS, 10)
-        self._publishers = {
+        self.status = ros.Status(self)
+        self._outputs = {
             'arm': self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS),
             'gripper': self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS),
             'result': self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS),
@@ -69,7 +64,7 @@ class ControllerNode(ros.Node):
         self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.LATCHED_QOS)
         self.create_timer(_STEP_S, lambda: self._send(self.logic.step(self._now())))
         sampler = f" ({p['sampler']} sampler)" if p['method'] != 'planner' else ''
-        self._say('info', f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']}")
+        self.status.info(f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']}")
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -80,22 +75,13 @@ class ControllerNode(ros.Node):
     def _send(self, outputs):
         for kind, msg in outputs:
             if kind in ('info', 'error'):
-                self._say(kind, msg)
+                self.status.say(kind, msg)
             else:
-                self._publishers[kind].publish(msg)
-
-    def _say(self, level: str, text: str):
-        getattr(self.get_logger(), level)(text)
-        self._status.publish(String(data=f'controller_node: {text}'))
+                self._outputs[kind].publish(msg)
 
 
 def main(args=None):
-    try:
-        ros.run(ControllerNode, args)
-    except StartupError as err:
-        print(f'[ERROR] [controller_node]: {err}', file=sys.stderr)
-        ros.try_shutdown()
-        sys.exit(1)
+    ros.run(ControllerNode, args, 'controller_node')
 
 
 if __name__ == '__main__':

@@ -42,7 +42,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from . import cdr, topics
 from .keyframes import DEFAULT_STOPPED_BUFFER, DEFAULT_STOPPING_DELTA, discover_keyframes
-from .message import Message, get_message, type_name_of
+from .message import Message, from_rclpy, get_message, type_name_of
 from .panda import ARM_JOINTS, FINGER_JOINTS, FINGER_MAX, GRIPPER_OPEN_WIDTH
 
 METADATA_PREFIX = 'hdp.'
@@ -90,22 +90,20 @@ def _typestore():
 def _offered_qos(topic: str) -> Qos:
     """The QoS our nodes publish ``topic`` with, so ``ros2 bag play`` offers the same."""
     if topic == topics.TF_STATIC:
-        profile = topics.LATCHED_QOS
+        policies = topics.QOS_POLICIES['LATCHED_QOS']
+    elif topic == topics.STATUS:
+        policies = topics.QOS_POLICIES['STATUS_QOS']
     elif topic.startswith('/camera/'):
-        profile = topics.SENSOR_QOS
+        policies = topics.QOS_POLICIES['SENSOR_QOS']
     else:
-        profile = topics.COMMAND_QOS
-    # rclpy's and our policy enums share their member names with rosbags'.
-    return Qos(QosHistory[profile.history.name], profile.depth,
-               QosReliability[profile.reliability.name], QosDurability[profile.durability.name],
-               _INFINITE, _INFINITE, QosLiveliness.AUTOMATIC, _INFINITE, False)
+        policies = topics.QOS_POLICIES['COMMAND_QOS']
+    return Qos(QosHistory.KEEP_LAST, policies.depth, QosReliability[policies.reliability],
+               QosDurability[policies.durability], _INFINITE, _INFINITE, QosLiveliness.AUTOMATIC, _INFINITE,
+               False)
 
 
 def _serialize(msg) -> bytes:
-    if isinstance(msg, Message):
-        return cdr.serialize(msg)
-    from rclpy.serialization import serialize_message   # rclpy's own classes, under ROS 2
-    return serialize_message(msg)
+    return cdr.serialize(msg if isinstance(msg, Message) else from_rclpy(msg))
 
 
 class EpisodeWriter:

@@ -136,3 +136,21 @@ def type_name_of(msg_type: type) -> str:
     if isinstance(msg_type, type) and issubclass(msg_type, Message):
         return msg_type._type
     return f"{msg_type.__module__.split('.')[0]}/msg/{msg_type.__name__}"
+
+
+def from_rclpy(msg) -> Message:
+    """Our message equal to an rclpy-generated ``msg`` (same type and fields, nested ones too).
+
+    Recorded episodes are serialised with our codec: rclpy's ``serialize_message`` (Jazzy,
+    Fast DDS) returns its size estimate's worth of bytes, so some messages (JointTrajectory)
+    come out longer than their CDR, the tail uninitialised memory, which rosbags rejects.
+    """
+    cls = get_message(type_name_of(type(msg)))
+    values = {}
+    for field in cls._spec.fields:
+        value = getattr(msg, field.name)
+        if field.is_message:
+            value = [from_rclpy(item) for item in value] if field.array else from_rclpy(value)
+        values[field.name] = value
+    return cls(**values)
+

@@ -1,13 +1,14 @@
-"""The message classes node code uses: rclpy's when ROS 2 is installed, ours otherwise.
+"""The message classes code uses: rclpy's generated ones where ROS 2 is installed, ours otherwise.
 
     from hdp_msgs_py.msg import Image, JointTrajectory, String
 
-Both sets have the same field names and the same wire format, so a node
-written against this module runs unchanged under ``ros2 run`` and on our
-DDS runtime.
+Nodes need rclpy and so always get rclpy's. Everything else (conversions,
+recorded episodes, datasets, training) also runs where the ROS 2 wheels do not
+install (another Python, a training cluster): there these are our classes
+(``hdp_msgs_py.message``), with the same field names and the same wire format.
 """
 
-from .runtime_select import USING_RCLPY
+import importlib
 
 _TYPES = {
     'builtin_interfaces': ['Time', 'Duration'],
@@ -21,9 +22,23 @@ _TYPES = {
     'rosgraph_msgs': ['Clock'],
 }
 
-if USING_RCLPY:
-    import importlib
 
+def _ros_installed() -> bool:
+    try:
+        import rclpy  # noqa: F401
+    except ImportError:
+        return False
+    try:
+        importlib.import_module('tf2_msgs.msg')
+    except ImportError as err:
+        raise ImportError('rclpy is installed but tf2_msgs is not: `make setup` builds it into the '
+                          'virtualenv; with ROS 2 from apt, `apt install ros-jazzy-tf2-msgs`') from err
+    return True
+
+
+USING_RCLPY = _ros_installed()
+
+if USING_RCLPY:
     for _package, _names in _TYPES.items():
         _module = importlib.import_module(f'{_package}.msg')
         globals().update({name: getattr(_module, name) for name in _names})

@@ -1,75 +1,129 @@
-"""The node API every HDP node imports: rclpy under ROS 2, our DDS runtime elsewhere.
+"""What every HDP node adds to rclpy: a middleware set up for camera frames, callbacks that
+cannot stop the node, a status line for users, and a main().
 
     from hdp_msgs_py import ros
 
-    class MyNode(ros.Node): ...
-    ros.init(args=args); ros.spin(node)
+    class PlannerNode(ros.Node): ...          # an rclpy.node.Node
+        self.status = ros.Status(self)
 
-Both runtimes log and survive an exception raised in a subscription or timer
-callback (plain rclpy would propagate it out of spin and stop the node).
+    def main(args=None):
+        ros.run(PlannerNode, args)
+
+Any process that talks to the graph calls ``ros.init()`` instead of ``rclpy.init()``.
+
+Plain rclpy propagates an exception raised in a subscription or timer callback
+out of spin, which ends the node; a robot's nodes should log it and keep
+serving the next message instead. A node that cannot start (a bad parameter, a
+damaged checkpoint) exits 1 with one line saying why, not a traceback.
 """
 
 import functools
+import os
+import sys
+import traceback
+from pathlib import Path
 
-from .runtime_select import USING_RCLPY
+import rclpy
+import rclpy.node
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException
 
-if USING_RCLPY:
-    import rclpy
-    import rclpy.node
-    from rclpy import init, ok, shutdown, spin, spin_once, try_shutdown
-    from rclpy.clock import Clock
-    from rclpy.duration import Duration
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                           qos_profile_sensor_data, qos_profile_system_default)
-    from rclpy.time import Time
-
-    class Node(rclpy.node.Node):
-        """rclpy's Node whose callbacks log exceptions instead of ending spin."""
-
-        def _guard(self, what, callback):
-            @functools.wraps(callback)
-            def guarded(*args):
-                try:
-                    return callback(*args)
-                except Exception:   # noqa: BLE001 (a node must survive a bad callback)
-                    import traceback
-                    self.get_logger().error(f'{what} raised:\n{traceback.format_exc().rstrip()}')
-            return guarded
-
-        def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
-            return super().create_subscription(
-                msg_type, topic, self._guard(f"subscription callback on '{topic}'", callback),
-                qos_profile, **kwargs)
-
-        def create_timer(self, timer_period_sec, callback, **kwargs):
-            return super().create_timer(timer_period_sec, self._guard('timer callback', callback), **kwargs)
-else:
-    from .dds import (Clock, Duration, DurabilityPolicy, ExternalShutdownException, HistoryPolicy,
-                      Node, Parameter, QoSProfile, ReliabilityPolicy, SingleThreadedExecutor, Time,
-                      init, ok, qos_profile_sensor_data, qos_profile_system_default, shutdown, spin,
-                      spin_once, try_shutdown)
+from . import topics
+from .msg import String
 
 
+FASTDDS_LOCALHOST_PROFILE = Path(__file__).with_name('config') / 'fastdds_localhost.xml'
 
-def run(node_class, args=None) -> None:
+
+def use_localhost_profile(environ=os.environ) -> bool:
+    """Give Fast DDS the project's localhost profile (config/fastdds_localhost.xml says why)
+    unless the user chose a profile, another middleware, static peers or a wider discovery
+    range. True when it did. Children started from here inherit the choice."""
+    if environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp') != 'rmw_fastrtps_cpp':
+        return False
+    if any(environ.get(name) for name in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE',
+                                          'ROS_STATIC_PEERS')):
+        return False
+    if environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST') != 'LOCALHOST':
+        return False
+    environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(FASTDDS_LOCALHOST_PROFILE)
+    environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'    # rmw_fastrtps then takes the profile as is
+    return True
+
+
+def init(args=None, **kwargs) -> None:
+    """rclpy.init() with the middleware set up for the graph (use_localhost_profile)."""
+    use_localhost_profile()
+    rclpy.init(args=args, **kwargs)
+
+
+class StartupError(Exception):
+    """A parameter or checkpoint the node cannot run with."""
+
+
+class Node(rclpy.node.Node):
+    """rclpy's Node whose subscription and timer callbacks log exceptions instead of ending spin."""
+
+    def _guard(self, what, callback):
+        @functools.wraps(callback)
+        def guarded(*args):
+            try:
+                return callback(*args)
+            except Exception:   # noqa: BLE001 (a node must survive a bad callback)
+                self.get_logger().error(f'{what} raised:\n{traceback.format_exc().rstrip()}')
+        return guarded
+
+    def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
+        return super().create_subscription(
+            msg_type, topic, self._guard(f"subscription callback on '{topic}'", callback),
+            qos_profile, **kwargs)
+
+    def create_timer(self, timer_period_sec, callback, **kwargs):
+        return super().create_timer(timer_period_sec, self._guard('timer callback', callback), **kwargs)
+
+
+class Status:
+    """Log a line and publish it on /hdp/status as '<node name>: <line>', where users watch the graph."""
+
+    def __init__(self, node: rclpy.node.Node):
+        self._node = node
+        self._publisher = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
+
+    def info(self, text: str) -> None:
+        self._node.get_logger().info(text)
+        self._publisher.publish(String(data=f'{self._node.get_name()}: {text}'))
+
+    def error(self, text: str) -> None:
+        # rclpy ties a severity to each logging call site, so each level has its own.
+        self._node.get_logger().error(text)
+        self._publisher.publish(String(data=f'{self._node.get_name()}: {text}'))
+
+    def say(self, level: str, text: str) -> None:
+        """level 'info' or 'error', as the node loops hand them out."""
+        (self.error if level == 'error' else self.info)(text)
+
+
+def run(node_class, args=None, name: str = '') -> None:
     """A node executable's main(): init, construct, spin, shut down cleanly.
 
-    Ctrl-C and SIGTERM end the spin; the node is destroyed either way.
+    Ctrl-C and SIGTERM end the spin; the node is destroyed either way. A
+    StartupError or a parameter of the wrong type or value ends the process
+    with exit status 1 and one line on stderr.
     """
     init(args=args)
-    node = node_class()
     try:
-        spin(node)
+        node = node_class()
+    except (StartupError, InvalidParameterTypeException, InvalidParameterValueException) as err:
+        rclpy.try_shutdown()
+        print(f'[ERROR] [{name or node_class.__name__}]: {err}', file=sys.stderr)
+        sys.exit(1)
+    except BaseException:
+        rclpy.try_shutdown()
+        raise
+    try:
+        rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         node.destroy_node()
-        try_shutdown()
-
-
-__all__ = ['USING_RCLPY', 'run', 'Clock', 'Duration', 'DurabilityPolicy', 'ExternalShutdownException',
-           'HistoryPolicy', 'Node', 'Parameter', 'QoSProfile', 'ReliabilityPolicy',
-           'SingleThreadedExecutor', 'Time', 'init', 'ok', 'qos_profile_sensor_data',
-           'qos_profile_system_default', 'shutdown', 'spin', 'spin_once', 'try_shutdown']
+        rclpy.try_shutdown()

@@ -3,7 +3,8 @@
 Every name is remappable (`--ros-args -r /hdp/instruction:=/my/instruction`).
 """
 
-from .ros import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+import functools
+import typing
 
 INSTRUCTION = '/hdp/instruction'
 STATUS = '/hdp/status'
@@ -43,8 +44,34 @@ def camera_info(camera: str) -> str:
     return f'/camera/{camera}/color/camera_info'
 
 
-# QoS as ROS 2 uses it: cameras best effort, commands and state reliable,
-# static transforms latched for late joiners.
-SENSOR_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
-COMMAND_QOS = QoSProfile(depth=10)
-LATCHED_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# QoS as ROS 2 uses it: cameras best effort, commands and state reliable, static
+# transforms latched for late joiners; /hdp/status kept like /rosout, so an observer that
+# joins (or is discovered) after a node said something, such as its start-up 'ready', still
+# receives the recent lines. Written as plain policies, so that code without rclpy (recorded
+# episodes) reads them; `topics.SENSOR_QOS` etc. are rclpy profiles, made on first use.
+class QosPolicies(typing.NamedTuple):
+    depth: int
+    reliability: str           # member names shared by rclpy's and rosbags' enums
+    durability: str
+
+
+QOS_POLICIES = {
+    'SENSOR_QOS': QosPolicies(5, 'BEST_EFFORT', 'VOLATILE'),
+    'COMMAND_QOS': QosPolicies(10, 'RELIABLE', 'VOLATILE'),
+    'LATCHED_QOS': QosPolicies(1, 'RELIABLE', 'TRANSIENT_LOCAL'),
+    'STATUS_QOS': QosPolicies(100, 'RELIABLE', 'TRANSIENT_LOCAL'),
+}
+
+
+@functools.cache
+def _qos_profile(name: str):
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    policies = QOS_POLICIES[name]
+    return QoSProfile(depth=policies.depth, reliability=ReliabilityPolicy[policies.reliability],
+                      durability=DurabilityPolicy[policies.durability])
+
+
+def __getattr__(name: str):
+    if name in QOS_POLICIES:
+        return _qos_profile(name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

@@ -7,7 +7,6 @@ node on wall time, so a dead simulator (whose /clock stops with it) is reported,
 """
 
 import functools
-import sys
 
 from hdp_msgs_py import panda, ros, topics
 from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, PoseStamped, String, TFMessage
@@ -16,10 +15,6 @@ from .agent import NextBestPoseAgent
 from .planner_logic import Observations, PlannerLoop, default_checkpoint
 
 _STEP_S = 0.1
-
-
-class StartupError(Exception):
-    """A parameter or checkpoint the node cannot run with."""
 
 
 class PlannerNode(ros.Node):
@@ -34,23 +29,23 @@ class PlannerNode(ros.Node):
         p = {name: self.get_parameter(name).value for name in (
             'checkpoint', 'max_segments', 'camera_timeout_s', 'result_timeout_s', 'joint_prefix')}
         if p['max_segments'] < 1:
-            raise StartupError(f"parameter 'max_segments' must be >= 1, got {p['max_segments']}")
+            raise ros.StartupError(f"parameter 'max_segments' must be >= 1, got {p['max_segments']}")
         for name in ('camera_timeout_s', 'result_timeout_s'):
             if not p[name] > 0:
-                raise StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
+                raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         checkpoint = p['checkpoint'] or default_checkpoint()
         try:
             agent = NextBestPoseAgent.from_checkpoint(checkpoint)
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
-            raise StartupError(f'cannot load the next-best-pose agent: {err}') from None
+            raise ros.StartupError(f'cannot load the next-best-pose agent: {err}') from None
         prefix = p['joint_prefix']
         observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
                                     tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS))
         self.loop = PlannerLoop(agent, agent.model.config.vocabulary, p['max_segments'], p['camera_timeout_s'],
                                 p['result_timeout_s'], observations)
 
-        self._status = self.create_publisher(String, topics.STATUS, 10)
-        self._publishers = {
+        self.status = ros.Status(self)
+        self._outputs = {
             'nbp': self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS),
             'gripper_goal': self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS),
         }
@@ -68,7 +63,7 @@ class PlannerNode(ros.Node):
                                  lambda m: self._send(self.loop.on_result(m, self._now())), topics.COMMAND_QOS)
         self.create_subscription(Bool, topics.SIM_SUCCESS, lambda m: self.loop.on_success(m.data), 10)
         self.create_timer(_STEP_S, self._step)
-        self._say('info', f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction')
+        self.status.info(f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction')
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -80,22 +75,13 @@ class PlannerNode(ros.Node):
     def _send(self, outputs):
         for kind, msg in outputs:
             if kind in ('info', 'error'):
-                self._say(kind, msg)
+                self.status.say(kind, msg)
             else:
-                self._publishers[kind].publish(msg)
-
-    def _say(self, level: str, text: str):
-        getattr(self.get_logger(), level)(text)
-        self._status.publish(String(data=f'planner_node: {text}'))
+                self._outputs[kind].publish(msg)
 
 
 def main(args=None):
-    try:
-        ros.run(PlannerNode, args)
-    except StartupError as err:
-        print(f'[ERROR] [planner_node]: {err}', file=sys.stderr)
-        ros.try_shutdown()
-        sys.exit(1)
+    ros.run(PlannerNode, args, 'planner_node')
 
 
 if __name__ == '__main__':

@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import rclpy
 
 from hdp_msgs_py import conversions, panda, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
@@ -436,7 +437,7 @@ class DemoNode(ros.Node):
         for msg_type, topic, callback, qos in (
                 (String, topics.SIM_EPISODE, self._on_episode, topics.LATCHED_QOS),
                 (Bool, topics.SIM_SUCCESS, self._on_success, topics.COMMAND_QOS),
-                (String, topics.STATUS, self._on_status, topics.COMMAND_QOS),
+                (String, topics.STATUS, self._on_status, topics.STATUS_QOS),
                 (JointState, topics.NEXT_BEST_GRIPPER, self._on_gripper_goal, topics.COMMAND_QOS),
                 (PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS),
                 (JointTrajectory, topics.ARM_TRAJECTORY, self._on_trajectory, topics.COMMAND_QOS),
@@ -536,7 +537,7 @@ class Session:
                 raise GraphDown(f'{died} exited with code {self.procs[died].returncode}')
             if time.monotonic() >= deadline:
                 return False
-            ros.spin_once(self.node, timeout_sec=0.1)
+            rclpy.spin_once(self.node, timeout_sec=0.1)
         return True
 
 
@@ -695,7 +696,7 @@ def run(args) -> int:
         for sig, handler in previous.items():       # the runtime's, which shutdown replaces in turn
             signal.signal(sig, handler)
         node.destroy_node()
-        ros.try_shutdown()
+        rclpy.try_shutdown()
     if records:
         _write_outputs(args, domain, picked, records, logs_by_episode, started, say, json_out)
     return code

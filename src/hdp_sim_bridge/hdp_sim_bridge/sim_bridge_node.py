@@ -7,9 +7,10 @@ its own timers on the wall clock, stepping physics at ``real_time_factor``.
 import json
 import time
 
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
 from hdp_msgs_py import ros, topics
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
-from hdp_msgs_py.ros import QoSProfile, ReliabilityPolicy
 
 from .bridge import SimBridge, parse_reset
 from .world import TIME_STEP
@@ -37,7 +38,7 @@ class SimBridgeNode(ros.Node):
         self._camera_every = round(1.0 / (p['camera_rate_hz'] * TIME_STEP)) if p['camera_rate_hz'] > 0 else 0
 
         self.bridge = SimBridge(p['camera_width'], p['camera_height'])
-        self._status = self.create_publisher(String, topics.STATUS, 10)
+        self.status = ros.Status(self)
         self._clock_pub = self.create_publisher(Clock, topics.CLOCK, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._joints = self.create_publisher(JointState, topics.JOINT_STATES, topics.COMMAND_QOS)
@@ -58,22 +59,18 @@ class SimBridgeNode(ros.Node):
         self.create_timer(0.005, self._tick)
         self.create_timer(0.5, lambda: self._success.publish(Bool(data=self.bridge.success())))
 
-    def _say(self, text: str, error: bool = False):
-        (self.get_logger().error if error else self.get_logger().info)(text)
-        self._status.publish(String(data=f'sim_bridge_node: {text}'))
-
     def _reset(self, task, seed, variation):
         episode = self.bridge.reset(task, seed, variation)
         self._steps, self._wall_start = 0, time.monotonic()
         self._episode.publish(String(data=json.dumps(episode)))
-        self._say(f"episode {episode['task']} seed {seed} variation {episode['variation']}: "
-                  f"{episode['instruction']!r}")
+        self.status.info(f"episode {episode['task']} seed {seed} variation {episode['variation']}: "
+                         f"{episode['instruction']!r}")
 
     def _on_reset(self, msg):
         try:
             request = parse_reset(msg.data)
         except ValueError as err:
-            self._say(f'rejected reset: {err}', error=True)
+            self.status.error(f'rejected reset: {err}')
             return
         self._reset(request['task'], request.get('seed', 0), request.get('variation'))
 
@@ -81,25 +78,25 @@ class SimBridgeNode(ros.Node):
         try:
             publishing = self.bridge.select_cameras(msg.data)
         except ValueError as err:
-            self._say(f'rejected camera selection: {err}', error=True)
+            self.status.error(f'rejected camera selection: {err}')
             return
         stopped = [name for name in self.bridge.cameras if name not in publishing]
-        self._say(f'cameras publishing: {", ".join(publishing) or "none"}; stopped: {", ".join(stopped) or "none"}')
+        self.status.info(f'cameras publishing: {", ".join(publishing) or "none"}; stopped: {", ".join(stopped) or "none"}')
 
     def _on_arm(self, msg):
         try:
             self.bridge.command_arm(msg)
         except ValueError as err:
-            self._say(f'rejected arm trajectory: {err}', error=True)
+            self.status.error(f'rejected arm trajectory: {err}')
             return
-        self._say(f'executing an arm trajectory of {len(msg.points)} points, '
-                  f'{self.bridge.trajectory.end_time - self.bridge.sim_time:.2f} s')
+        self.status.info(f'executing an arm trajectory of {len(msg.points)} points, '
+                         f'{self.bridge.trajectory.end_time - self.bridge.sim_time:.2f} s')
 
     def _on_gripper(self, msg):
         try:
             self.bridge.command_gripper(msg)
         except ValueError as err:
-            self._say(f'rejected gripper command: {err}', error=True)
+            self.status.error(f'rejected gripper command: {err}')
 
     def _tick(self):
         """Step physics up to where the wall clock (times the real-time factor) says."""
@@ -126,7 +123,7 @@ class SimBridgeNode(ros.Node):
 
 
 def main(args=None):
-    ros.run(SimBridgeNode, args)
+    ros.run(SimBridgeNode, args, 'sim_bridge_node')
 
 
 if __name__ == '__main__':

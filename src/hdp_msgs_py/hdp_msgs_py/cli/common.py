@@ -1,18 +1,25 @@
-"""Shared pieces of the ROS-like CLI: a hidden node on our DDS runtime, QoS options."""
+"""Shared pieces of the ROS 2-like CLI: a hidden rclpy node per command, QoS options."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import time
 
-from cyclonedds.core import Policy
+import rclpy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
-from .. import dds
-from ..dds.graph import Graph
-from ..dds.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from .. import ros
+
+# A peer usually shows up in well under a second, but when the first exchange with a new
+# participant is lost (about one start in five here) only at the peer's next announcement:
+# every 0.5 s with the project's Fast DDS profile (ros.init), every 3 s with Fast DDS's
+# default (a node started some other way).
+DISCOVERY_WAIT = 1.5
 
 
-def add_discovery_args(parser, default_wait: float = 1.0) -> None:
+def add_discovery_args(parser, default_wait: float = DISCOVERY_WAIT) -> None:
     parser.add_argument('--spin-time', type=float, default=default_wait, metavar='SEC',
                         help=f'seconds to wait for discovery (default {default_wait})')
 
@@ -25,43 +32,63 @@ def add_qos_args(parser) -> None:
     parser.add_argument('--qos-depth', type=int, default=10)
 
 
+def qos_profile(reliability: str, durability: str, depth: int) -> QoSProfile:
+    """A profile from the options' short names ('best_effort', 'transient_local', ...)."""
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.get_from_short_key(reliability),
+                      durability=DurabilityPolicy.get_from_short_key(durability))
+
+
 def qos_from_args(args, publishers: list) -> QoSProfile:
-    """Explicit choices win; 'auto' takes what every discovered publisher offers."""
-    def all_offer(policy, wanted) -> bool:
-        def offers(endpoint) -> bool:
-            got = endpoint.qos[policy] if endpoint.qos is not None else None
-            return isinstance(got, wanted) if isinstance(wanted, type) else got == wanted
-        return bool(publishers) and all(offers(e) for e in publishers)
+    """Explicit choices win; 'auto' takes what every discovered publisher offers, as `ros2 topic echo`.
+
+    `publishers` are rclpy TopicEndpointInfo; a subscription asking for more than
+    one of them offers (reliable, transient_local) would not match it.
+    """
+    def all_offer(policy: str, wanted) -> bool:
+        return bool(publishers) and all(getattr(p.qos_profile, policy) == wanted for p in publishers)
 
     reliability = args.qos_reliability
     if reliability == 'auto':
-        reliable = all_offer(Policy.Reliability, Policy.Reliability.Reliable)
-        reliability = 'reliable' if reliable else 'best_effort'
+        reliability = 'reliable' if all_offer('reliability', ReliabilityPolicy.RELIABLE) else 'best_effort'
     durability = args.qos_durability
     if durability == 'auto':
-        latched = all_offer(Policy.Durability, Policy.Durability.TransientLocal)
+        latched = all_offer('durability', DurabilityPolicy.TRANSIENT_LOCAL)
         durability = 'transient_local' if latched else 'volatile'
-    return QoSProfile(depth=args.qos_depth, reliability=ReliabilityPolicy(reliability),
-                      durability=DurabilityPolicy(durability))
+    return qos_profile(reliability, durability, args.qos_depth)
 
 
 @contextlib.contextmanager
-def cli_node(wait: float = 0.0):
-    """A hidden node (leading underscore, as ros2cli's) living for one command."""
-    dds.init(args=[])
-    node = dds.Node(f'_hdp_cli_{os.getpid()}')
+def cli_node():
+    """A hidden node (leading underscore, as ros2cli's) living for one command.
+
+    Without rclpy's signal handlers Ctrl-C is a plain KeyboardInterrupt, raised
+    within one spin slice, instead of a shutdown that each loop has to notice.
+    """
+    ros.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     try:
-        graph = Graph.of(node.context)
-        if wait > 0:
-            _spin_for(node, wait)
-        yield node, graph
+        # no parameter services or /rosout publisher: nothing on the graph that a tool has no use for
+        node = rclpy.create_node(f'_hdp_cli_{os.getpid()}', start_parameter_services=False,
+                                 enable_rosout=False)
+    except BaseException:
+        rclpy.try_shutdown()
+        raise
+    try:
+        yield node
     finally:
         node.destroy_node()
-        dds.try_shutdown()
+        rclpy.try_shutdown()
 
 
-def _spin_for(node, seconds: float) -> None:
-    import time
+def spin_until(node, done, seconds: float) -> bool:
+    """Spin until done() or `seconds` pass; returns done().
+
+    Short slices: graph changes (discovery) run no callback to end a spin, and
+    Ctrl-C waits for the slice to end.
+    """
     end = time.monotonic() + seconds
-    while dds.ok() and time.monotonic() < end:
-        dds.spin_once(node, timeout_sec=max(0.0, end - time.monotonic()))
+    while not done():
+        left = end - time.monotonic()
+        if left <= 0:
+            break
+        rclpy.spin_once(node, timeout_sec=min(left, 0.1))
+    return done()

@@ -1,13 +1,12 @@
-"""List ROS nodes on the graph (ours and any ROS 2 peer's)."""
+"""List ROS 2 nodes on the graph, like `ros2 node list`."""
 
 from __future__ import annotations
 
-from ..dds.graph import wait_for_discovery
-from .common import add_discovery_args, cli_node
+from .common import add_discovery_args, cli_node, spin_until
 
 
 def configure(parser) -> None:
-    """List the ROS 2 nodes on the graph, read from ros_discovery_info."""
+    """List the ROS 2 nodes on the graph."""
     sub = parser.add_subparsers(title='commands', metavar='COMMAND')
     parser.set_defaults(func=lambda args: parser.print_help() or 2)
     p = sub.add_parser('list', help='fully qualified names of the nodes found')
@@ -17,9 +16,11 @@ def configure(parser) -> None:
 
 
 def run_list(args) -> int:
-    with cli_node() as (node, graph):
-        wait_for_discovery(args.spin_time)
-        for name in graph.node_names():
-            if args.all or not name.rsplit('/', 1)[-1].startswith('_'):
-                print(name)
+    with cli_node() as node:
+        spin_until(node, lambda: False, args.spin_time)
+        names = sorted(namespace.rstrip('/') + '/' + name
+                       for name, namespace in node.get_node_names_and_namespaces()
+                       if args.all or not name.startswith('_'))
+    for name in names:
+        print(name)
     return 0

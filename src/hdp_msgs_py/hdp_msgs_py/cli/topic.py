@@ -1,19 +1,22 @@
-"""Inspect and use topics without ROS: list, echo, pub."""
+"""Inspect and use topics like `ros2 topic`: list, echo, pub."""
 
 from __future__ import annotations
 
+import math
 import sys
-import time
 
-from .. import dds
-from ..dds.graph import wait_for_discovery
-from ..message import get_message
-from ..message_yaml import message_from_yaml, message_to_yaml
-from .common import add_discovery_args, add_qos_args, cli_node, qos_from_args
+from rclpy.duration import Duration
+from rclpy.exceptions import InvalidTopicNameException
+from rclpy.qos import ReliabilityPolicy
+from rclpy.validate_topic_name import validate_topic_name
+
+from ..message_yaml import get_message, message_from_yaml, message_to_yaml
+from .common import (DISCOVERY_WAIT, add_discovery_args, add_qos_args, cli_node, qos_from_args,
+                     qos_profile, spin_until)
 
 
 def configure(parser) -> None:
-    """List, echo and publish topics on the ROS 2 graph (DDS, no ROS install needed)."""
+    """List, echo and publish topics on the ROS 2 graph."""
     sub = parser.add_subparsers(title='commands', metavar='COMMAND')
     parser.set_defaults(func=lambda args: parser.print_help() or 2)
 
@@ -45,7 +48,7 @@ def configure(parser) -> None:
     p.add_argument('-w', '--wait-matching-subscriptions', type=int, default=None, metavar='N',
                    help='wait for N subscribers before publishing (default 1 with --once/--times)')
     p.add_argument('--max-wait', type=float, default=5.0, metavar='SEC',
-                   help='how long to wait for those subscribers')
+                   help='how long to wait for those subscribers (and, if reliable, their acknowledgements)')
     p.add_argument('--qos-reliability', choices=['reliable', 'best_effort'], default='reliable')
     p.add_argument('--qos-durability', choices=['volatile', 'transient_local'], default='volatile')
     p.add_argument('--qos-depth', type=int, default=10)
@@ -53,93 +56,106 @@ def configure(parser) -> None:
 
 
 def run_list(args) -> int:
-    with cli_node() as (node, graph):
-        wait_for_discovery(args.spin_time)
-        for name, types in sorted(graph.topic_names_and_types().items()):
+    with cli_node() as node:
+        spin_until(node, lambda: False, args.spin_time)
+        for name, types in sorted(node.get_topic_names_and_types()):
             print(f"{name} [{', '.join(sorted(types))}]" if args.show_types else name)
     return 0
 
 
-def _resolve_type(graph, topic: str, wait: float) -> str | None:
-    end = time.monotonic() + wait
-    while True:
-        types = graph.topic_names_and_types().get(topic)
-        if types:
-            if len(types) > 1:
-                raise SystemExit(f'{topic} carries several types ({", ".join(sorted(types))}): name one')
-            return next(iter(types))
-        if time.monotonic() >= end:
-            return None
-        time.sleep(0.1)
+def _graph_types(node, topic: str, seconds: float) -> list[str]:
+    """The types `topic` carries on the graph, given up to `seconds` to show up."""
+    def types() -> list[str]:
+        return dict(node.get_topic_names_and_types()).get(topic, [])
+    spin_until(node, lambda: bool(types()), seconds)
+    return sorted(types())
+
+
+def _invalid_topic(name: str) -> str | None:
+    """One line saying why rclpy would refuse `name`, or None if it is valid."""
+    try:
+        validate_topic_name(name)
+    except InvalidTopicNameException as err:
+        return f"{str(err).splitlines()[0].rstrip(':')}: {name!r}"
+    return None
 
 
 def run_echo(args) -> int:
     topic = args.topic if args.topic.startswith('/') else '/' + args.topic
-    with cli_node() as (node, graph):
-        type_name = args.type or _resolve_type(graph, topic, max(args.spin_time, 2.0))
-        if type_name is None:
-            print(f'could not find {topic} on the graph; give its type, e.g. '
+    if error := _invalid_topic(topic):
+        print(error, file=sys.stderr)
+        return 1
+    with cli_node() as node:
+        try:
+            return _echo(node, topic, args)
+        except KeyboardInterrupt:
+            return 0    # Ctrl-C is how an endless echo ends
+
+
+def _echo(node, topic: str, args) -> int:
+    type_name = args.type
+    if type_name is None:
+        types = _graph_types(node, topic, max(args.spin_time, DISCOVERY_WAIT))
+        if len(types) != 1:
+            print(f'{topic} carries several types ({", ".join(types)}): name one' if types else
+                  f'could not find {topic} on the graph; give its type, e.g. '
                   f'hdp topic echo {topic} std_msgs/msg/String', file=sys.stderr)
             return 1
-        try:
-            msg_type = get_message(type_name)
-        except ValueError as err:
-            print(err, file=sys.stderr)
-            return 1
-        wait_for_discovery(min(args.spin_time, 0.5))
-        publishers = [e for e in graph._alive('publications') if e.topic_name == 'rt' + topic]
-        qos = qos_from_args(args, publishers)
-        received = []
+        type_name = types[0]
+    try:
+        msg_type = get_message(type_name)
+    except ValueError as err:
+        print(err, file=sys.stderr)
+        return 1
+    # 'auto' QoS needs the publishers' offers: give them the discovery time to show up
+    spin_until(node, lambda: node.get_publishers_info_by_topic(topic), args.spin_time)
+    qos = qos_from_args(args, node.get_publishers_info_by_topic(topic))
+    received = 0
 
-        def on_message(msg):
-            received.append(msg)
-            print(message_to_yaml(msg, None if args.full_length else 32), end='')
-            print('---', flush=True)
+    def on_message(msg):
+        nonlocal received
+        received += 1
+        print(message_to_yaml(msg, None if args.full_length else 32), end='')
+        print('---', flush=True)
 
-        node.create_subscription(msg_type, topic, on_message, qos)
-        start = time.monotonic()
-        while dds.ok() and not (args.once and received):
-            dds.spin_once(node, timeout_sec=0.1)
-            if args.timeout is not None and not received and time.monotonic() - start > args.timeout:
-                print(f'no message on {topic} within {args.timeout} s', file=sys.stderr)
-                return 1
+    node.create_subscription(msg_type, topic, on_message, qos)
+    if args.timeout is not None and not spin_until(node, lambda: received > 0, args.timeout):
+        print(f'no message on {topic} within {args.timeout} s', file=sys.stderr)
+        return 1
+    spin_until(node, lambda: args.once and received > 0, math.inf)
     return 0
 
 
 def run_pub(args) -> int:
-    from ..dds.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    error = _invalid_topic(args.topic) or ('--rate must be > 0' if args.rate <= 0 else None)
+    if error:
+        print(error, file=sys.stderr)
+        return 1
     try:
         msg = message_from_yaml(args.type, args.values)
-    except (ValueError, TypeError) as err:
+    except ValueError as err:
         print(f'cannot build {args.type}: {err}', file=sys.stderr)
-        return 1
-    if args.rate <= 0:
-        print('--rate must be > 0', file=sys.stderr)
         return 1
     times = 1 if args.once else args.times
     wait_for = args.wait_matching_subscriptions
     if wait_for is None:
         wait_for = 1 if times else 0
-    qos = QoSProfile(depth=args.qos_depth, reliability=ReliabilityPolicy(args.qos_reliability),
-                     durability=DurabilityPolicy(args.qos_durability))
-    with cli_node() as (node, graph):
+    qos = qos_profile(args.qos_reliability, args.qos_durability, args.qos_depth)
+    with cli_node() as node:
         pub = node.create_publisher(type(msg), args.topic, qos)
-        deadline = time.monotonic() + args.max_wait
-        while pub.get_subscription_count() < wait_for and time.monotonic() < deadline and dds.ok():
-            time.sleep(0.05)
-        if pub.get_subscription_count() < wait_for:
+        if not spin_until(node, lambda: pub.get_subscription_count() >= wait_for, args.max_wait):
             print(f'warning: only {pub.get_subscription_count()} of {wait_for} subscribers matched '
                   f'within {args.max_wait} s; publishing anyway', file=sys.stderr)
+        text = message_to_yaml(msg).strip().replace('\n', ' ')
         sent = 0
-        while dds.ok() and (not times or sent < times):
+        while True:
             pub.publish(msg)
             sent += 1
-            print(f'publishing #{sent}: {message_to_yaml(msg).strip()}'.replace('\n', ' '), flush=True)
+            print(f'publishing #{sent}: {text}', flush=True)
             if times and sent >= times:
                 break
-            dds.spin_once(node, timeout_sec=1.0 / args.rate)
-        # Reliable samples are resent until acknowledged: stay up long enough.
-        end = time.monotonic() + 0.5
-        while dds.ok() and time.monotonic() < end:
-            time.sleep(0.05)
+            spin_until(node, lambda: False, 1.0 / args.rate)
+        if qos.reliability == ReliabilityPolicy.RELIABLE:
+            # a reliable sample is resent until acknowledged: stay up until it is
+            pub.wait_for_all_acked(Duration(seconds=args.max_wait))
     return 0

@@ -1,0 +1,72 @@
+"""hdp_msgs_py.ros: the Fast DDS profile every process gets, and what it does to the sockets."""
+
+import os
+import socket
+import time
+import xml.etree.ElementTree as ElementTree
+
+import pytest
+
+from hdp_msgs_py import ros
+from test_dds_processes import finish, start
+
+
+def test_the_localhost_profile_is_applied_by_default():
+    environ = {'ROS_DOMAIN_ID': '7'}
+    assert ros.use_localhost_profile(environ)
+    assert environ == {'ROS_DOMAIN_ID': '7', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SYSTEM_DEFAULT',
+                       'FASTRTPS_DEFAULT_PROFILES_FILE': str(ros.FASTDDS_LOCALHOST_PROFILE)}
+    assert ros.use_localhost_profile({'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'})
+
+
+@pytest.mark.parametrize('choice', [
+    {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}, {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'OFF'},
+    {'ROS_STATIC_PEERS': '192.168.1.7'}, {'FASTRTPS_DEFAULT_PROFILES_FILE': '/etc/mine.xml'},
+    {'FASTDDS_DEFAULT_PROFILES_FILE': '/etc/mine.xml'}, {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}])
+def test_a_users_own_middleware_choice_is_left_alone(choice):
+    environ = dict(choice)
+    assert not ros.use_localhost_profile(environ)
+    assert environ == choice
+
+
+def test_the_profile_keeps_to_loopback_with_a_segment_that_holds_a_camera_frame():
+    ns = {'f': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    root = ElementTree.parse(ros.FASTDDS_LOCALHOST_PROFILE).getroot()
+    shm = int(root.find('.//f:transport_descriptor[f:type="SHM"]/f:segment_size', ns).text)
+    assert shm > 640 * 480 * 3 * 4                     # several 640x480 rgb8 frames in flight
+    assert [a.text for a in root.findall('.//f:interfaceWhiteList/f:address', ns)] == ['127.0.0.1']
+    assert root.find('.//f:useBuiltinTransports', ns).text == 'false'
+    assert not root.findall('.//f:metatrafficMulticastLocatorList', ns)
+
+
+def _udp_addresses(pid: int) -> list[str]:
+    """Local IPv4 addresses of the UDP sockets process ``pid`` holds."""
+    inodes = set()
+    for fd in os.listdir(f'/proc/{pid}/fd'):
+        try:
+            target = os.readlink(f'/proc/{pid}/fd/{fd}')
+        except OSError:
+            continue
+        if target.startswith('socket:['):
+            inodes.add(target[8:-1])
+    addresses = []
+    with open(f'/proc/{pid}/net/udp') as table:
+        for line in list(table)[1:]:
+            fields = line.split()
+            if fields[9] in inodes:
+                addresses.append(socket.inet_ntoa(bytes.fromhex(fields[1].split(':')[0])[::-1]))
+    return addresses
+
+
+def test_a_node_listens_on_loopback_only(ros_domain):
+    sub = start(ros_domain, 'sub', 'string', '--timeout', '30')
+    try:
+        deadline = time.monotonic() + 20
+        while not (addresses := _udp_addresses(sub.pid)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(1.0)
+        addresses = _udp_addresses(sub.pid)
+    finally:
+        sub.terminate()
+        finish(sub)
+    assert addresses and set(addresses) == {'127.0.0.1'}, addresses
