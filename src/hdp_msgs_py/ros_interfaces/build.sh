@@ -14,8 +14,15 @@ here=$(dirname "$(realpath "$0")")
 export PATH="$venv/bin:$PATH" AMENT_PREFIX_PATH="$venv" CMAKE_PREFIX_PATH="$venv"
 for pkg in tf2_msgs control_msgs; do
   build="$venv/.ros_interfaces_build/$pkg"
-  cmake -S "$here/$pkg" -B "$build" -DCMAKE_INSTALL_PREFIX="$venv" -DCMAKE_BUILD_TYPE=Release \
-    -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$venv/bin/python" --log-level=WARNING
-  cmake --build "$build" -j "$(nproc)"
-  cmake --install "$build" > /dev/null
+  log="$build.log"
+  mkdir -p "$build"
+  echo "building $pkg with rosidl (log: $log)"
+  if ! { cmake -S "$here/$pkg" -B "$build" -DCMAKE_INSTALL_PREFIX="$venv" -DCMAKE_BUILD_TYPE=Release \
+           -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$venv/bin/python" &&
+         cmake --build "$build" -j "$(nproc)" &&
+         cmake --install "$build"; } > "$log" 2>&1; then
+    tail -n 40 "$log" >&2
+    echo "building $pkg failed; the whole log is $log" >&2
+    exit 1
+  fi
 done
