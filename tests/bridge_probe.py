@@ -10,7 +10,8 @@ import time
 import numpy as np
 import rclpy
 
-from hdp_msgs_py import conversions, panda, ros, topics
+from hdp_motion import panda
+from hdp_msgs_py import conversions, ros, topics
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
 
 

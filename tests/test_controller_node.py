@@ -17,7 +17,8 @@ import pytest
 import rclpy
 import torch
 
-from hdp_msgs_py import conversions, panda, topics
+from hdp_motion import panda
+from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.msg import Header, JointState, Point, Pose, PoseStamped, Quaternion, TFMessage, Time
 
 torch.set_num_threads(1)
@@ -25,7 +26,7 @@ torch.set_num_threads(1)
 @functools.cache
 def home_pose() -> np.ndarray:
     """(7,) panda_grasptarget at panda.HOME, where the sim's arm starts."""
-    from hdp_controller import kinematics
+    from hdp_motion import kinematics
     return kinematics.fk_pose(torch.as_tensor(panda.HOME, dtype=torch.float64)).numpy()
 
 
@@ -163,7 +164,7 @@ def test_out_of_limit_or_failed_plans_are_refused_never_sent():
 
 
 def test_planner_method_reaches_the_goal_pose_within_limits():
-    from hdp_controller import kinematics
+    from hdp_motion import kinematics
     from hdp_controller.baselines import PlannerPolicy
     from hdp_controller.controller_logic import plan_segment
     msg, _ = plan_segment(PlannerPolicy(), _request(), panda.ARM_JOINTS, 0.5)
@@ -383,7 +384,7 @@ def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain):
 
 def probe() -> None:
     """Drive a running controller_node + sim_bridge_node; print what happened as one JSON line."""
-    from hdp_controller import kinematics
+    from hdp_motion import kinematics
     from hdp_msgs_py import ros
     from hdp_msgs_py.msg import JointTrajectory, String
     ros.init(args=sys.argv)

@@ -176,7 +176,7 @@ def test_gif_replays_sim_time_faster_and_is_a_valid_animation(tmp_path):
 
 
 def test_ee_positions_are_the_sims_own_forward_kinematics():
-    from hdp_msgs_py import panda
+    from hdp_motion import panda
     from hdp_sim_bridge.world import PandaWorld
     q = np.array([panda.HOME, panda.HOME + np.array([0.3, 0.2, -0.1, 0.2, 0.1, -0.2, 0.4])])
     with PandaWorld() as world:
@@ -192,7 +192,7 @@ def test_wall_to_sim_maps_events_through_joint_state_samples():
 
 
 def test_trajectory_plot_is_a_png(tmp_path):
-    from hdp_msgs_py import panda
+    from hdp_motion import panda
     log = demo.EpisodeLog(start=0.0)
     wall = np.linspace(0.1, 6.0, 120)
     q = np.tile(panda.HOME, (120, 1))              # at home, then turning joint 1

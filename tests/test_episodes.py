@@ -13,8 +13,8 @@ from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import image_to_numpy, numpy_to_image, seconds_to_time
 from hdp_msgs_py.episodes import (EpisodeError, EpisodeWriter, list_episodes, read_episode,
                                   read_metadata)
+from hdp_motion.panda import ARM_JOINTS, FINGER_JOINTS, HOME
 from hdp_msgs_py.message import get_message
-from hdp_msgs_py.panda import ARM_JOINTS, FINGER_JOINTS, HOME
 
 JointState = get_message('sensor_msgs/msg/JointState')
 String = get_message('std_msgs/msg/String')

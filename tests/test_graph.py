@@ -25,7 +25,8 @@ import rclpy
 
 import conftest
 from hdp_controller.observation import CAMERA_SIZE
-from hdp_msgs_py import conversions, panda, ros, topics
+from hdp_motion import panda
+from hdp_msgs_py import conversions, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointTrajectory, Point, Pose, PoseStamped, Quaternion, String, Time
 from hdp_planner.hierarchy import episode_instruction
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor

@@ -11,9 +11,9 @@ from hdp_controller.baselines import PlannerPolicy, PoseIKPolicy
 from hdp_controller.evaluation import distinct_nbps, evaluate, markdown_table, oracle_episode, run_episode
 from hdp_controller.low_level import HORIZON, PlanResult
 from hdp_controller.observation import front_camera, front_points, points_from_messages, segment_request
+from hdp_motion import planning
 from hdp_msgs_py import conversions, workspace
 from hdp_msgs_py.episodes import read_episode
-from hdp_sim_bridge import motion
 from hdp_sim_bridge.collect import record_episode
 from hdp_sim_bridge.experts import reachable_scene
 from hdp_sim_bridge.world import PandaWorld
@@ -86,7 +86,7 @@ def test_pose_ik_follows_a_reachable_line_and_flags_an_unreachable_pose(world):
     plan = PoseIKPolicy(straight_line).plan(request)          # the standalone scene
     assert plan.ok and plan.joints.shape == (HORIZON + 1, 7) and plan.poses.shape == (HORIZON, 7)
     np.testing.assert_allclose(plan.joints[0], request.q)
-    end, _ = motion.ee_pose(world.client_id, world.robot, plan.joints[-1])
+    end, _ = planning.ee_pose(world.client_id, world.robot, plan.joints[-1])
     np.testing.assert_allclose(end, request.goal_pose[:3], atol=2e-3)
 
     far = PoseIKPolicy(lambda r: np.tile(np.r_[2.0, 0.0, 1.0, quat], (HORIZON, 1))).plan(request)
@@ -98,7 +98,7 @@ def test_planner_plans_in_free_space_and_reports_no_path(world):
     xyz, quat = world.ee_pose()
     plan = PlannerPolicy().plan(_request_to(world, xyz + [0.1, 0.0, 0.0], quat))
     assert plan.ok and plan.extras['kind'] == 'linear'
-    end, _ = motion.ee_pose(world.client_id, world.robot, plan.joints[-1])
+    end, _ = planning.ee_pose(world.client_id, world.robot, plan.joints[-1])
     np.testing.assert_allclose(end, xyz + [0.1, 0.0, 0.0], atol=2e-3)
     here = PlannerPolicy().plan(_request_to(world, xyz, quat))       # e.g. a repeated keyframe
     assert here.ok and here.extras['kind'] == 'none' and here.joints.shape == (1, 7)
@@ -121,7 +121,7 @@ def test_oracle_nbps_are_the_keyframes_of_the_recorded_demo(world, tmp_path):
     summary = record_episode(world, 'open_drawer', 7, tmp_path, width=32, height=24)
     episode = read_episode(summary.path)
     keyframes = episode.keyframes()
-    recorded = [(np.concatenate(motion.ee_pose(world.client_id, world.robot, episode.joint_states.position[k])),
+    recorded = [(np.concatenate(planning.ee_pose(world.client_id, world.robot, episode.joint_states.position[k])),
                  bool(episode.joint_states.gripper_open[k])) for k in keyframes]
     oracle = oracle_episode('open_drawer', 7, world)
     expected = distinct_nbps(recorded)

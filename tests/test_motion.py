@@ -1,4 +1,4 @@
-"""hdp_sim_bridge.motion on a bare pybullet Panda: IK, straight lines,
+"""hdp_motion.planning and timing on a bare pybullet Panda: IK, straight lines,
 collision checking, RRT-Connect around a wall, time parameterisation."""
 
 import math
@@ -8,8 +8,8 @@ import pybullet as p
 import pybullet_data
 import pytest
 
-from hdp_msgs_py.panda import HOME, LOWER, UPPER, VELOCITY_LIMITS
-from hdp_sim_bridge import motion
+from hdp_motion import planning, timing
+from hdp_motion.panda import HOME, LOWER, UPPER, VELOCITY_LIMITS
 
 DOWN = np.array([1.0, 0.0, 0.0, 0.0])        # gripper pointing at the floor
 LEFT, RIGHT = np.array([0.45, -0.3, 0.25]), np.array([0.45, 0.3, 0.25])
@@ -26,8 +26,8 @@ def world():
                                         physicsClientId=client)
     wall = p.createMultiBody(0, wall_shape, basePosition=[0.45, 0.0, 0.2],
                              physicsClientId=client)
-    q_left = motion.solve_ik(client, robot, LEFT, DOWN, HOME)
-    motion._set_arm(client, robot, q_left)
+    q_left = planning.solve_ik(client, robot, LEFT, DOWN, HOME)
+    planning._set_arm(client, robot, q_left)
     yield client, robot, floor, wall, q_left
     p.disconnect(client)
 
@@ -42,13 +42,13 @@ def test_ik_round_trip_on_random_reachable_poses(world):
     solved = 0
     for _ in range(40):
         q_true = np.clip(HOME + rng.uniform(-0.5, 0.5, 7), LOWER, UPPER)
-        xyz, quat = motion.ee_pose(client, robot, q_true)
-        q = motion.solve_ik(client, robot, xyz, quat, HOME)
+        xyz, quat = planning.ee_pose(client, robot, q_true)
+        q = planning.solve_ik(client, robot, xyz, quat, HOME)
         if q is None:
             continue
         solved += 1
         assert np.all(q >= LOWER) and np.all(q <= UPPER)
-        xyz_q, quat_q = motion.ee_pose(client, robot, q)
+        xyz_q, quat_q = planning.ee_pose(client, robot, q)
         assert np.linalg.norm(xyz_q - xyz) < 1e-3
         assert rotation_angle(quat_q, quat) < math.radians(1.0)
     assert solved >= 38
@@ -56,66 +56,66 @@ def test_ik_round_trip_on_random_reachable_poses(world):
 
 def test_unreachable_pose_is_an_ik_error(world):
     client, robot, *_ = world
-    assert motion.solve_ik(client, robot, [1.5, 0.0, 0.5], DOWN, HOME) is None
+    assert planning.solve_ik(client, robot, [1.5, 0.0, 0.5], DOWN, HOME) is None
 
 
 def test_linear_path_is_straight(world):
     client, robot, floor, _, q_left = world
-    path = motion.linear_path(client, robot, q_left, RIGHT, DOWN, [floor])
+    path = planning.linear_path(client, robot, q_left, RIGHT, DOWN, [floor])
     assert path is not None and np.allclose(path[0], q_left)
     # Waypoints and the joint-space midpoints between them.
     states = np.concatenate([path, (path[1:] + path[:-1]) / 2])
     line = (RIGHT - LEFT) / np.linalg.norm(RIGHT - LEFT)
     for q in states:
-        xyz, quat = motion.ee_pose(client, robot, q)
+        xyz, quat = planning.ee_pose(client, robot, q)
         offset = xyz - LEFT
         assert np.linalg.norm(offset - np.dot(offset, line) * line) < 0.005
         assert rotation_angle(quat, DOWN) < math.radians(2.0)
-    assert np.linalg.norm(motion.ee_pose(client, robot, path[-1])[0] - RIGHT) < 1e-3
+    assert np.linalg.norm(planning.ee_pose(client, robot, path[-1])[0] - RIGHT) < 1e-3
 
 
 def test_wall_blocks_the_line_and_rrt_connect_goes_around(world):
     client, robot, floor, wall, q_left = world
     obstacles = [floor, wall]
-    assert motion.linear_path(client, robot, q_left, RIGHT, DOWN, obstacles) is None
-    q_right = motion.linear_path(client, robot, q_left, RIGHT, DOWN, [floor])[-1]
+    assert planning.linear_path(client, robot, q_left, RIGHT, DOWN, obstacles) is None
+    q_right = planning.linear_path(client, robot, q_left, RIGHT, DOWN, [floor])[-1]
 
-    path = motion.rrt_connect(client, robot, q_left, q_right, obstacles, seed=3)
+    path = planning.rrt_connect(client, robot, q_left, q_right, obstacles, seed=3)
     assert path is not None
     assert np.allclose(path[0], q_left) and np.allclose(path[-1], q_right)
     assert np.all(path >= LOWER) and np.all(path <= UPPER)
-    assert np.max(np.linalg.norm(np.diff(path, axis=0), axis=1)) <= motion.RRT_RESOLUTION + 1e-9
+    assert np.max(np.linalg.norm(np.diff(path, axis=0), axis=1)) <= planning.RRT_RESOLUTION + 1e-9
     # Every waypoint and three states between each pair, without any margin.
     between = [a + s * (b - a) for a, b in zip(path[:-1], path[1:]) for s in (0.25, 0.5, 0.75)]
-    touching = motion.collision_checker(client, robot, obstacles, margin=0.0)
-    with motion.preserved_state(client, robot):
+    touching = planning.collision_checker(client, robot, obstacles, margin=0.0)
+    with planning.preserved_state(client, robot):
         assert all(touching(q) for q in [*path, *between])
 
-    again = motion.rrt_connect(client, robot, q_left, q_right, obstacles, seed=3)
+    again = planning.rrt_connect(client, robot, q_left, q_right, obstacles, seed=3)
     assert np.array_equal(path, again)
-    rough = motion.rrt_connect(client, robot, q_left, q_right, obstacles, seed=3, simplify=False)
+    rough = planning.rrt_connect(client, robot, q_left, q_right, obstacles, seed=3, simplify=False)
     assert rough is not None and len(rough) > len(path)
 
 
 def test_plan_to_pose_prefers_a_straight_line(world):
     client, robot, floor, wall, q_left = world
-    path, kind = motion.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor])
+    path, kind = planning.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor])
     assert kind == 'linear'
-    path, kind = motion.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor, wall])
+    path, kind = planning.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor, wall])
     assert kind == 'rrt'
-    assert np.linalg.norm(motion.ee_pose(client, robot, path[-1])[0] - RIGHT) < 1e-3
+    assert np.linalg.norm(planning.ee_pose(client, robot, path[-1])[0] - RIGHT) < 1e-3
 
 
 def test_planning_leaves_the_simulated_robot_alone(world):
     client, robot, floor, wall, q_left = world
     velocities = np.linspace(0.1, 0.7, 7)
-    motion._set_arm(client, robot, q_left, velocities)
-    motion.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor, wall])
-    motion.solve_ik(client, robot, RIGHT, DOWN, HOME)
-    states = p.getJointStates(robot, motion.ARM, physicsClientId=client)
+    planning._set_arm(client, robot, q_left, velocities)
+    planning.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor, wall])
+    planning.solve_ik(client, robot, RIGHT, DOWN, HOME)
+    states = p.getJointStates(robot, planning.ARM_JOINT_IDS, physicsClientId=client)
     assert np.array_equal([s[0] for s in states], q_left)
     assert np.allclose([s[1] for s in states], velocities)
-    motion._set_arm(client, robot, q_left)
+    planning._set_arm(client, robot, q_left)
 
 
 def test_attached_body_moves_with_the_hand(world):
@@ -130,13 +130,13 @@ def test_attached_body_moves_with_the_hand(world):
                              physicsClientId=client)
     try:
         rod_pose = p.getBasePositionAndOrientation(rod, physicsClientId=client)
-        with motion.preserved_state(client, robot, attached=rod):
+        with planning.preserved_state(client, robot, attached=rod):
             # Held, the rod may touch the fingers, but its end may not touch the post.
-            assert motion.collision_checker(client, robot, [floor, rod], attached=rod)(q_left)
-            assert motion.collision_checker(client, robot, [floor, post])(q_left)
-            assert not motion.collision_checker(client, robot, [floor, post], attached=rod)(q_left)
+            assert planning.collision_checker(client, robot, [floor, rod], attached=rod)(q_left)
+            assert planning.collision_checker(client, robot, [floor, post])(q_left)
+            assert not planning.collision_checker(client, robot, [floor, post], attached=rod)(q_left)
             # Carried along: out of the post's way at HOME.
-            assert motion.collision_checker(client, robot, [floor, post], attached=rod)(HOME)
+            assert planning.collision_checker(client, robot, [floor, post], attached=rod)(HOME)
         assert p.getBasePositionAndOrientation(rod, physicsClientId=client) == rod_pose
     finally:
         p.removeBody(post, physicsClientId=client)
@@ -146,9 +146,9 @@ def test_attached_body_moves_with_the_hand(world):
 @pytest.mark.parametrize('scale', [1.0, 0.3])
 def test_time_parameterize_respects_velocity_limits(world, scale):
     client, robot, floor, wall, q_left = world
-    path, _ = motion.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor, wall])
+    path, _ = planning.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor, wall])
     path = np.concatenate([path, path[-1:]])          # a zero-length segment too
-    times = motion.time_parameterize(path, velocity_scale=scale)
+    times = timing.time_parameterize(path, velocity_scale=scale)
     assert times.shape == (len(path),) and times[0] == 0.0
     assert np.all(np.diff(times) > 0)
     speed = np.abs(np.diff(path, axis=0)) / np.diff(times)[:, None]
@@ -157,7 +157,7 @@ def test_time_parameterize_respects_velocity_limits(world, scale):
 
 def test_resample_path_spaces_waypoints_evenly():
     path = np.array([np.zeros(7), np.full(7, 0.1), np.full(7, 0.1), np.full(7, 0.4)])
-    resampled = motion.resample_path(path, 9)
+    resampled = timing.resample_path(path, 9)
     assert resampled.shape == (9, 7)
     assert np.allclose(resampled[[0, -1]], path[[0, -1]])
     assert np.allclose(np.diff(resampled, axis=0), 0.05)

@@ -267,7 +267,7 @@ def test_agent_predicts_a_pose_from_camera_frames(tmp_path):
 
 
 def test_proprio_vector_scales_to_the_joint_limits():
-    from hdp_msgs_py import panda
+    from hdp_motion import panda
     assert np.allclose(proprio_vector(panda.LOWER, False), [-1] * 8)
     assert np.allclose(proprio_vector(panda.UPPER, True), [1] * 8)
 

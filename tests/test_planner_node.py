@@ -19,7 +19,8 @@ import pytest
 import rclpy
 import torch
 
-from hdp_msgs_py import conversions, panda, topics
+from hdp_motion import panda
+from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.msg import Header, JointState, TFMessage, Time, TransformStamped
 from hdp_planner.agent import NextBestPose
 from hdp_planner.planner_logic import (MAX_INSTRUCTION_CHARS, InstructionRefused, Observations, PlannerLoop,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from hdp_controller import checkpoint, kinematics
+from hdp_controller import checkpoint
 from hdp_controller.dataset import SegmentDataset, load_segments, resample_by_arc_length, trajectory_rank
 from hdp_controller.diffusion import TrajectoryDiffusion
 from hdp_controller.low_level import HORIZON, SegmentRequest
@@ -16,7 +16,7 @@ from hdp_controller.policy import conditions
 from hdp_controller.refine import goal_error, refine, smooth_poses
 from hdp_controller.rk_diffuser import RKDConfig, RKDiffuser, joint_motion, joints_from_motion
 from hdp_controller.unet import TemporalUnet
-from hdp_msgs_py import panda
+from hdp_motion import kinematics, panda
 from hdp_msgs_py.episodes import list_episodes, read_episode
 
 HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
@@ -47,13 +47,13 @@ def _batch(segs, n=4, seed=0):
 # --- kinematics ---------------------------------------------------------------------------
 
 def test_forward_kinematics_matches_pybullet():
-    from hdp_sim_bridge import motion
+    from hdp_motion import planning
     from hdp_sim_bridge.world import PandaWorld
     rng = np.random.default_rng(0)
     with PandaWorld() as world:
         for _ in range(5):
             q = rng.uniform(panda.LOWER, panda.UPPER)
-            xyz, quat = motion.ee_pose(world.client_id, world.robot, q)
+            xyz, quat = planning.ee_pose(world.client_id, world.robot, q)
             pose = kinematics.fk_pose(torch.tensor(q, dtype=torch.float64))
             assert np.allclose(pose[:3].numpy(), xyz, atol=1e-4)
             _, angle = kinematics.pose_error(pose, torch.tensor(np.r_[xyz, quat]))
@@ -251,7 +251,7 @@ def test_refinement_smooths_a_wobbling_sample_so_it_executes_at_speed():
     """Diffuser samples wobble from waypoint to waypoint (here 2 mm and 0.03 rad, alternating). Timed
     as they are, every wobble is a turn the arm slows for; refined from the smoothed samples, the
     path takes about as long as the clean one and still ends on the goal."""
-    from hdp_sim_bridge.motion import time_parameterize
+    from hdp_motion.timing import time_parameterize
     q0 = torch.tensor(panda.HOME, dtype=torch.float64)
     ramp = torch.linspace(0, 1, HORIZON, dtype=torch.float64)[:, None]
     truth = (q0 + torch.tensor([0.4, 0.3, -0.3, 0.4, 0.2, -0.3, 0.5], dtype=torch.float64) * ramp)[None]
@@ -382,7 +382,7 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
 # --- policies, trajectories, figures --------------------------------------------------------
 
 def _request(q=panda.HOME):
-    from hdp_controller.kinematics import fk_pose as fk
+    from hdp_motion.kinematics import fk_pose as fk
     start = fk(torch.tensor(q, dtype=torch.float32)).numpy()
     goal = fk(torch.tensor(np.asarray(q) + [0.2, 0.1, 0.0, 0.2, 0.0, -0.1, 0.3], dtype=torch.float32)).numpy()
     return SegmentRequest(q=np.asarray(q), qd=np.zeros(7), gripper_width=0.08, gripper_open=True, start_pose=start,

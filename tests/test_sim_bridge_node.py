@@ -52,7 +52,8 @@ def test_reset_requests_are_validated():
 
 
 def test_gripper_commands_are_validated():
-    from hdp_msgs_py import conversions, panda
+    from hdp_motion import panda
+    from hdp_msgs_py import conversions
     names = list(panda.FINGER_JOINTS)
     assert gripper_target(conversions.build_joint_trajectory(names, [[0.04, 0.04]], [0.5])) is True
     assert gripper_target(conversions.build_joint_trajectory(names, [[0.0, 0.0]], [0.5])) is False

@@ -7,10 +7,12 @@ import numpy as np
 import pybullet
 import pytest
 
-from hdp_msgs_py import panda
-from hdp_sim_bridge import experts, motion
+from hdp_motion import panda
+from hdp_motion import timing
+from hdp_motion.planning import EE_LINK_ID
+from hdp_sim_bridge import experts
 from hdp_sim_bridge.trajectory_follower import ActiveTrajectory
-from hdp_sim_bridge.world import EE_LINK, GRASP_FORCE_LIMIT, TABLE_TOP_Z, TIME_STEP, PandaWorld
+from hdp_sim_bridge.world import GRASP_FORCE_LIMIT, TABLE_TOP_Z, TIME_STEP, PandaWorld
 
 DOWN = (1.0, 0.0, 0.0, 0.0)       # grasp target z axis pointing at the table
 BOX_HALF = 0.02                   # m: a 4 cm cube
@@ -40,7 +42,7 @@ def box_position(world, box) -> np.ndarray:
 def ik(world, xyz) -> np.ndarray:
     """(7,) joint angles putting the grasp target at ``xyz``, pointing down, within the limits."""
     q = world.client.calculateInverseKinematics(
-        world.robot, EE_LINK, xyz, DOWN, lowerLimits=list(panda.LOWER) + [0, 0],
+        world.robot, EE_LINK_ID, xyz, DOWN, lowerLimits=list(panda.LOWER) + [0, 0],
         upperLimits=list(panda.UPPER) + [0.04, 0.04],
         jointRanges=list(panda.UPPER - panda.LOWER) + [0.04, 0.04],
         restPoses=list(panda.HOME) + [0.04, 0.04], maxNumIterations=200, residualThreshold=1e-6)
@@ -148,8 +150,8 @@ def test_a_timed_path_with_a_sharp_corner_is_followed_closely(world):
     ramp = np.linspace(0.0, 0.4, 21)[:, None]
     path = np.vstack([panda.HOME + ramp * [0, 1, 0, 0, 0, 0, 0],
                       panda.HOME + [0, 0.4, 0, 0, 0, 0, 0] + ramp[1:] * [0, 0, 0, 1, 0, 0, 0]])
-    times = motion.time_parameterize(path, velocity_scale=0.5)
-    trajectory = ActiveTrajectory(world.sim_time, times, path, motion.path_velocities(path, times, 0.5))
+    times = timing.time_parameterize(path, velocity_scale=0.5)
+    trajectory = ActiveTrajectory(world.sim_time, times, path, timing.path_velocities(path, times, 0.5))
     worst = 0.0
     while world.sim_time < trajectory.end_time:
         target = trajectory.sample(world.sim_time + TIME_STEP)

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from hdp_msgs_py import conversions, panda
+from hdp_motion import panda
+from hdp_msgs_py import conversions
 from hdp_msgs_py.msg import Time
 from hdp_sim_bridge.trajectory_follower import accept
 

@@ -16,6 +16,7 @@ setup(
     ],
     install_requires=[
         'setuptools',
+        'hdp_motion',
         'hdp_msgs_py',
         'hdp_sim_bridge',
         'numpy',

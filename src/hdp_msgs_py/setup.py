@@ -13,7 +13,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
     ],
-    install_requires=['setuptools', 'numpy', 'pyyaml', 'rosbags'],
+    install_requires=['setuptools', 'hdp_motion', 'numpy', 'pyyaml', 'rosbags'],
     extras_require={'test': ['pytest']},
     zip_safe=True,
     maintainer='HDP-ROS developers',

@@ -12,6 +12,8 @@ setup(
     ],
     install_requires=[
         'setuptools',
+        'hdp_controller',
+        'hdp_motion',
         'hdp_msgs_py',
         'hdp_sim_bridge',
         'numpy',

@@ -17,8 +17,7 @@ import functools
 
 import numpy as np
 
-from hdp_msgs_py import panda
-from hdp_sim_bridge import motion
+from hdp_motion import panda, planning
 from hdp_sim_bridge.world import PandaWorld
 
 from .low_level import PlanResult, Scene, SegmentRequest
@@ -47,7 +46,7 @@ def _free_attached_body(scene: Scene) -> int | None:
 def _at_pose(pose, goal) -> bool:
     """Whether two (7,) xyz + quat xyzw poses agree within IK's tolerances."""
     angle = 2.0 * np.arccos(min(1.0, abs(float(np.dot(pose[3:], goal[3:])))))
-    return bool(np.linalg.norm(pose[:3] - goal[:3]) < motion.IK_POS_TOL and angle < motion.IK_ROT_TOL)
+    return bool(np.linalg.norm(pose[:3] - goal[:3]) < planning.IK_POS_TOL and angle < planning.IK_ROT_TOL)
 
 
 class PlannerPolicy:
@@ -66,7 +65,7 @@ class PlannerPolicy:
             # contact already, say with a grasped cup still standing on the table.
             return PlanResult(np.asarray(request.q, dtype=float)[None], extras={'kind': 'none'})
         scene = scene or standalone_scene()
-        found = motion.plan_to_pose(scene.client, scene.robot, request.q, request.goal_pose[:3],
+        found = planning.plan_to_pose(scene.client, scene.robot, request.q, request.goal_pose[:3],
                                     request.goal_pose[3:], list(scene.obstacles),
                                     timeout=self.rrt_timeout, seed=self.seed,
                                     attached=_free_attached_body(scene))
@@ -90,7 +89,7 @@ class PoseIKPolicy:
         poses = np.asarray(self.pose_sampler(request), dtype=float)
         q, joints = np.asarray(request.q, dtype=float), [np.asarray(request.q, dtype=float)]
         for pose in poses:
-            q = motion.solve_ik(scene.client, scene.robot, pose[:3], pose[3:], q)
+            q = planning.solve_ik(scene.client, scene.robot, pose[:3], pose[3:], q)
             if q is None or not panda.within_limits(q):
                 return PlanResult(None, failure='ik_error', ik_error=True, poses=poses)
             joints.append(q)

@@ -25,10 +25,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from hdp_msgs_py import conversions, panda, topics, workspace
+from hdp_motion import kinematics, panda
+from hdp_msgs_py import conversions, topics, workspace
 from hdp_msgs_py.msg import Header
 
-from . import kinematics
 from .low_level import SegmentRequest
 from .observation import points_from_messages
 from .trajectory import TrajectoryError, joint_trajectory

@@ -8,7 +8,8 @@ while a segment is planned, so there is nothing to react to until the trajectory
 """
 
 
-from hdp_msgs_py import panda, ros, topics
+from hdp_motion import panda
+from hdp_msgs_py import ros, topics
 from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
 
 from .controller_logic import SegmentController

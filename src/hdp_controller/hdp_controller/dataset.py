@@ -32,12 +32,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from hdp_motion.kinematics import continuous_quats, fk_pose
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import transform_to_matrix
 from hdp_msgs_py.episodes import list_episodes, read_episode
 from hdp_msgs_py.keyframes import DEFAULT_STOPPING_DELTA, segments
 
-from .kinematics import continuous_quats, fk_pose
 from .low_level import HORIZON
 from .observation import points_from_messages
 

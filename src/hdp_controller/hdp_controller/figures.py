@@ -14,12 +14,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from hdp_motion.kinematics import fk_pose
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.world import PandaWorld
 
 from .baselines import PlannerPolicy
 from .evaluation import oracle_episode, world_scene
-from .kinematics import fk_pose
 from .observation import front_camera, front_points, segment_request
 
 

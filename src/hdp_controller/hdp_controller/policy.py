@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from . import checkpoint
-from .baselines import PlannerPolicy, PoseIKPolicy
 from .low_level import PlanResult, Scene, SegmentRequest
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses
 from .rk_diffuser import RKDiffuser, as_batch
@@ -116,6 +115,8 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
     """
     if method not in METHODS:
         raise ValueError(f'unknown low-level method {method!r}; choose from {", ".join(METHODS)}')
+    if method in ('planner', 'pose_ik'):
+        from .baselines import PlannerPolicy, PoseIKPolicy   # they plan: PyBullet and OMPL, loaded only here
     if method == 'planner':
         return PlannerPolicy()
     model, payload = checkpoint.load_model(checkpoint_path or default_checkpoint())

@@ -34,10 +34,10 @@ import functools
 
 import torch
 
-from hdp_msgs_py import panda
-
-from .kinematics import (ROBOT_BASE, continuous_quats, fk_pose, forward_kinematics, matrix_to_quat, panda_chain,
-                         pose_error, quat_to_matrix)
+from hdp_motion import panda
+from hdp_motion.kinematics import (continuous_quats, fk_pose, forward_kinematics, matrix_to_quat, panda_chain,
+                                   pose_error, quat_to_matrix)
+from hdp_motion.panda import ROBOT_BASE
 
 _LIMIT_MARGIN = 1e-3      # rad inside the limits
 # A joint trajectory that moves a joint further than this between two of its 64

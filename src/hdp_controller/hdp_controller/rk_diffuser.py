@@ -28,11 +28,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from hdp_msgs_py import panda
+from hdp_motion import panda
+from hdp_motion.kinematics import forward_kinematics, quat_to_matrix
 from hdp_msgs_py.workspace import WORKSPACE
 
 from .diffusion import TrajectoryDiffusion
-from .kinematics import forward_kinematics, quat_to_matrix
 from .low_level import HORIZON
 from .pointnet2 import PointNet2Encoder
 from .unet import TemporalUnet

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdp_msgs_py import panda
+from hdp_motion import panda
+from hdp_motion.timing import path_velocities, time_parameterize
 from hdp_msgs_py.conversions import build_joint_trajectory
-from hdp_sim_bridge.motion import path_velocities, time_parameterize
 
 # Fraction of the velocity limits a generated trajectory may use.
 VELOCITY_SCALE = 0.5

@@ -17,10 +17,7 @@ import pytorch_kinematics as pk
 import pytorch_kinematics.urdf_parser_py.xml_reflection.core as urdf_core
 import torch
 
-from hdp_msgs_py.workspace import TABLE_TOP_Z
-
-EE_LINK = 'panda_grasptarget'
-ROBOT_BASE = (0.0, 0.0, TABLE_TOP_Z)        # m, the Panda's link 0 in the world frame
+from .panda import EE_LINK, ROBOT_BASE
 
 
 @contextlib.contextmanager

@@ -1,10 +1,15 @@
-"""Franka Panda facts every package shares: joint names, limits, the gripper.
+"""Franka Panda facts every package shares: where it stands, joint names, limits, the gripper.
 
 Limits are the real robot's (Franka datasheet), which are slightly tighter
 than pybullet_data's URDF; everything clamps to these.
 """
 
 import numpy as np
+
+# The arm's link 0 in the world frame, facing +x: it stands on the table top.
+ROBOT_BASE = (0.0, 0.0, 0.75)       # m
+# The end effector of every pose (next-best poses, IK, kinematics): 0.105 m beyond the hand flange.
+EE_LINK = 'panda_grasptarget'
 
 ARM_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 FINGER_JOINTS = ('panda_finger_joint1', 'panda_finger_joint2')

@@ -1,4 +1,6 @@
-"""Motion generation for the scripted experts and the "Planner" baseline.
+"""Motion planning for the scripted experts and the "Planner" baseline (PyBullet + OMPL).
+
+Only what plans imports this module: it loads PyBullet and OMPL.
 
 RLBench's rule, on a pybullet Panda: reach a pose by a straight Cartesian
 line if one exists, else by IK to a goal configuration and OMPL RRT-Connect.
@@ -23,10 +25,12 @@ import numpy as np
 import pybullet as p
 from ompl import base as ob, geometric as og, util as ou
 
-from hdp_msgs_py.panda import ACCELERATION_LIMITS, LOWER, UPPER, VELOCITY_LIMITS
+from .panda import LOWER, UPPER
 
-ARM = tuple(range(7))     # pybullet joint indices of panda_joint1..7
-EE_LINK = 11              # panda_grasptarget, 0.105 m beyond the hand
+# pybullet_data's franka_panda/panda.urdf: joint indices of panda_joint1..7, link index of
+# panda_grasptarget (panda.EE_LINK_ID)
+ARM_JOINT_IDS = tuple(range(7))
+EE_LINK_ID = 11
 # The rigid hand: panda_link8, panda_hand, the grasp target, and the fingers.
 # A grasped body touches these, so they never collide with it.
 HAND_LINKS = frozenset({7, 8, 9, 10, 11})
@@ -35,13 +39,6 @@ MARGIN = 0.005            # m: closer than this to an obstacle counts as collisi
 IK_POS_TOL = 1e-3         # m
 IK_ROT_TOL = math.radians(1.0)
 RRT_RESOLUTION = 0.02     # rad: joint-space step at which motions are checked
-# rad/s^2 per joint: 60% of what the simulated arm can follow (world.ACCELERATION_LIMITS), as
-# the spline through the waypoints accelerates more than the profile it samples.
-DEFAULT_ACCELERATION = 0.3 * ACCELERATION_LIMITS
-_MIN_DT = 1e-3            # s: the time given to a zero-length segment
-# Round a turn the spline through the waypoints accelerates up to about four times speed^2 x
-# curvature (its velocities there are central differences across the turn).
-_TURN_MARGIN = 4.0
 # pybullet collides convex hulls of the meshes. panda_link5's hull fills the
 # recess the real link has for the wrist, so it overlaps panda_link7 and the
 # hand whenever joint 6 < ~0.7 rad, which the real arm does freely.
@@ -51,20 +48,20 @@ _HULL_OVERLAPS = frozenset({(4, 6), (4, 8)})
 # ----------------------------------------------------------------- state
 
 def _set_arm(client, robot, q, qd=(0.0,) * 7):
-    p.resetJointStatesMultiDof(robot, ARM, [[x] for x in q], [[x] for x in qd],
+    p.resetJointStatesMultiDof(robot, ARM_JOINT_IDS, [[x] for x in q], [[x] for x in qd],
                                physicsClientId=client)
 
 
 def arm_positions(client, robot) -> np.ndarray:
     """The arm's joint positions, (7,)."""
-    return np.array([s[0] for s in p.getJointStates(robot, ARM, physicsClientId=client)])
+    return np.array([s[0] for s in p.getJointStates(robot, ARM_JOINT_IDS, physicsClientId=client)])
 
 
 @contextlib.contextmanager
 def preserved_state(client, robot, attached=None):
     """Restore the arm's joint positions and velocities (and the attached
     body's base pose and velocity) on exit: planning only ever moves those."""
-    arm = p.getJointStates(robot, ARM, physicsClientId=client)
+    arm = p.getJointStates(robot, ARM_JOINT_IDS, physicsClientId=client)
     if attached is not None:
         pose = p.getBasePositionAndOrientation(attached, physicsClientId=client)
         twist = p.getBaseVelocity(attached, physicsClientId=client)
@@ -84,7 +81,7 @@ def ee_pose(client, robot, q=None) -> tuple[np.ndarray, np.ndarray]:
         with preserved_state(client, robot):
             _set_arm(client, robot, q)
             return ee_pose(client, robot)
-    state = p.getLinkState(robot, EE_LINK, computeForwardKinematics=True,
+    state = p.getLinkState(robot, EE_LINK_ID, computeForwardKinematics=True,
                            physicsClientId=client)
     return np.array(state[4]), np.array(state[5])
 
@@ -131,7 +128,7 @@ def solve_ik(client, robot, xyz, quat_xyzw, q_seed, rounds=20,
             # candidate too: pulling towards q_seed instead holds the solver
             # back (1% vs 74% of random reachable poses solved from HOME).
             solution = p.calculateInverseKinematics(
-                robot, EE_LINK, list(xyz), list(quat), lowerLimits=lower,
+                robot, EE_LINK_ID, list(xyz), list(quat), lowerLimits=lower,
                 upperLimits=upper, jointRanges=ranges, restPoses=[*q, *fingers],
                 maxNumIterations=50, residualThreshold=1e-5, physicsClientId=client)
             q = np.clip(solution[:7], LOWER, UPPER)
@@ -346,78 +343,3 @@ def plan_to_pose(client, robot, q_start, xyz, quat, obstacles, timeout=5.0, seed
     path = rrt_connect(client, robot, q_start, q_goal, obstacles, timeout, seed,
                        simplify, attached, margin)
     return None if path is None else (path, 'rrt')
-
-
-# ----------------------------------------------------------------- timing
-
-def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATION):
-    """time_from_start (N,) for a joint path (N, 7): 0 first, strictly increasing.
-
-    Along the path the speed follows a trapezoidal profile that starts and
-    ends at rest, with no joint exceeding VELOCITY_LIMITS * velocity_scale
-    between consecutive waypoints nor `acceleration` (rad/s^2, scalar or (7,))
-    along a segment. Where the path turns, the speed is also capped so that
-    no joint's acceleration round the turn (speed^2 x curvature) exceeds
-    `acceleration`, the curvature spread over the two segments either side:
-    a dense path turns gently at speed, and a planner's sharp corner is taken
-    slowly. Streamed as a cubic spline through the waypoints at the
-    velocities of `path_velocities`, a planner's timed path is followed by
-    the simulated arm to within a few mrad. A path that zig-zags between
-    waypoints is slowed at every reversal but followed less closely, as the
-    spline stops the joint at each one.
-    """
-    path = np.asarray(path, dtype=float)
-    acceleration = np.broadcast_to(np.asarray(acceleration, dtype=float), (7,))
-    step = np.diff(path, axis=0)                             # (N-1, 7)
-    dq = np.abs(step)
-    length = np.linalg.norm(dq, axis=1)                      # (N-1,)
-    moving = length > 0
-    # Path speed and acceleration at which the most loaded joint hits its
-    # limit, and the change of speed^2 a segment allows (none when empty).
-    v_cap = np.full(len(dq), np.inf)
-    a_cap = np.full(len(dq), np.inf)
-    v_cap[moving] = length[moving] / np.max(dq[moving] / (VELOCITY_LIMITS * velocity_scale), axis=1)
-    a_cap[moving] = length[moving] / np.max(dq[moving] / acceleration, axis=1)
-    reach = np.zeros(len(dq))
-    reach[moving] = 2 * a_cap[moving] * length[moving]
-    # Speeds at the waypoints: at rest at both ends, capped by both adjacent
-    # segments and by the turn between the moving segments either side, and
-    # reachable under the acceleration cap (forward, then back).
-    speed = np.zeros(len(path))
-    speed[1:-1] = np.minimum(v_cap[:-1], v_cap[1:])
-    moves = np.flatnonzero(moving)
-    for before, after in zip(moves[:-1], moves[1:]):
-        turn = np.abs(step[after] / length[after] - step[before] / length[before])    # (7,)
-        curvature = turn / ((length[before] + length[after]) / 2)
-        with np.errstate(divide='ignore'):
-            speed[after] = min(speed[after], np.sqrt(np.min(acceleration / (_TURN_MARGIN * curvature))))
-    for k in range(len(dq)):
-        speed[k + 1] = min(speed[k + 1], math.sqrt(speed[k] ** 2 + reach[k]))
-    for k in reversed(range(len(dq))):
-        speed[k] = min(speed[k], math.sqrt(speed[k + 1] ** 2 + reach[k]))
-    dt = np.full(len(dq), _MIN_DT)
-    for k in moves:
-        va, vb, a, L = speed[k], speed[k + 1], a_cap[k], length[k]
-        peak = min(v_cap[k], math.sqrt(a * L + (va ** 2 + vb ** 2) / 2))
-        ramps = (2 * peak ** 2 - va ** 2 - vb ** 2) / (2 * a)    # distance spent ramping
-        dt[k] = max(_MIN_DT, (2 * peak - va - vb) / a + (L - ramps) / peak)
-    return np.concatenate([[0.0], np.cumsum(dt)])
-
-
-def path_velocities(path, times, velocity_scale=1.0):
-    """Joint velocities (N, 7) at the waypoints of a timed path (N, 7), times (N,):
-    central differences, zero at both ends, clipped to VELOCITY_LIMITS * velocity_scale."""
-    velocities = np.gradient(np.asarray(path, dtype=float), times, axis=0)
-    velocities[[0, -1]] = 0.0
-    limit = VELOCITY_LIMITS * velocity_scale
-    return np.clip(velocities, -limit, limit)
-
-
-def resample_path(path, n):
-    """n (>= 2) waypoints (n, 7) evenly spaced by joint-space arc length."""
-    path = np.asarray(path, dtype=float)
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
-    if arc[-1] == 0:
-        return np.repeat(path[:1], n, axis=0)
-    targets = np.linspace(0.0, arc[-1], n)
-    return np.stack([np.interp(targets, arc, path[:, j]) for j in range(path.shape[1])], axis=1)

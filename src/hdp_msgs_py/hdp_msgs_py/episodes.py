@@ -43,7 +43,7 @@ from rosbags.typesys import Stores, get_typestore
 from . import cdr, topics
 from .keyframes import DEFAULT_STOPPED_BUFFER, DEFAULT_STOPPING_DELTA, discover_keyframes
 from .message import Message, from_rclpy, get_message, type_name_of
-from .panda import ARM_JOINTS, FINGER_JOINTS, FINGER_MAX, GRIPPER_OPEN_WIDTH
+from hdp_motion.panda import ARM_JOINTS, FINGER_JOINTS, FINGER_MAX, GRIPPER_OPEN_WIDTH
 
 METADATA_PREFIX = 'hdp.'
 DEFAULT_MAX_BYTES = 2 * 1024 ** 3

@@ -8,7 +8,9 @@ Panda's base frame raised by the table height (see the launch files).
 
 import numpy as np
 
-TABLE_TOP_Z = 0.75                       # m
+from hdp_motion.panda import ROBOT_BASE
+
+TABLE_TOP_Z = ROBOT_BASE[2]              # m: the arm stands on the table top
 # [[x_min, y_min, z_min], [x_max, y_max, z_max]], m
 WORKSPACE = np.array([[0.2, -0.4, TABLE_TOP_Z], [0.8, 0.4, TABLE_TOP_Z + 0.6]])
 # Points closer than this to the table top are the table itself.

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdp_motion import kinematics
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import camera_info_to_intrinsics, image_to_numpy, transform_to_matrix
 from hdp_msgs_py.episodes import list_episodes, read_episode
@@ -34,7 +35,7 @@ from . import language, rotations
 from .model import proprio_vector
 from .voxels import scene_points
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3           # 3: forward kinematics by hdp_motion.kinematics (was PyBullet)
 KEYFRAME_SNAP = 0.02          # s
 NO_OP_DISTANCE = 0.01         # m
 NO_OP_ANGLE = math.radians(5)
@@ -47,33 +48,11 @@ YAW_STEP = 5                  # deg
 MAX_REDRAWS = 10
 
 
-class PandaKinematics:
-    """World pose of panda_grasptarget from arm joint positions, with the sim's own URDF and base."""
-
-    def __init__(self):
-        import pybullet
-        import pybullet_data
-        from pybullet_utils.bullet_client import BulletClient
-
-        from hdp_sim_bridge.world import ROBOT_BASE
-        self.client = BulletClient(connection_mode=pybullet.DIRECT)
-        self.client.setAdditionalSearchPath(pybullet_data.getDataPath())
-        self.robot = self.client.loadURDF('franka_panda/panda.urdf', ROBOT_BASE, useFixedBase=True)
-
-    def ee_pose(self, joint_positions) -> tuple[np.ndarray, np.ndarray]:
-        """xyz (N, 3) m and quaternions (N, 4) xyzw of (N, 7) joint positions."""
-        from hdp_sim_bridge.world import ARM_JOINT_IDS, EE_LINK
-        xyz, quat = [], []
-        for q in np.asarray(joint_positions, dtype=np.float64):
-            for joint, angle in zip(ARM_JOINT_IDS, q):
-                self.client.resetJointState(self.robot, joint, angle)
-            state = self.client.getLinkState(self.robot, EE_LINK, computeForwardKinematics=True)
-            xyz.append(state[4])
-            quat.append(state[5])
-        return np.array(xyz).reshape(-1, 3), np.array(quat).reshape(-1, 4)
-
-    def close(self) -> None:
-        self.client.disconnect()
+def ee_pose(joint_positions) -> tuple[np.ndarray, np.ndarray]:
+    """xyz (N, 3) m and quaternions (N, 4) xyzw of panda_grasptarget for (N, 7) joint positions."""
+    import torch
+    pose = kinematics.fk_pose(torch.as_tensor(np.asarray(joint_positions, dtype=np.float64))).numpy()
+    return pose[:, :3], pose[:, 3:]
 
 
 def _depth_metres(msg) -> np.ndarray:
@@ -116,7 +95,7 @@ def camera_geometry(episode) -> tuple[dict, dict]:
     return intrinsics, to_world
 
 
-def episode_samples(episode, kinematics: PandaKinematics) -> dict:
+def episode_samples(episode) -> dict:
     """One episode's samples as arrays, n of them:
     xyz (P, 3) float32 and rgb (P, 3) uint8 workspace points of all n observations, split at
     starts (n + 1,); joint_positions (n, 7), gripper_open (n,) at each observation;
@@ -124,12 +103,12 @@ def episode_samples(episode, kinematics: PandaKinematics) -> dict:
     plus task, variation and seed."""
     js = episode.joint_states
     keyframes = np.array(episode.keyframes(), dtype=np.int64)
-    keyframe_xyz, keyframe_quat = kinematics.ee_pose(js.position[keyframes])
+    keyframe_xyz, keyframe_quat = ee_pose(js.position[keyframes])
     intrinsics, to_world = camera_geometry(episode)
     clouds, state, target = [], [], []
     for t, frame in camera_frames(episode):
         now = max(int(np.searchsorted(js.t, t, side='right')) - 1, 0)      # the state the frame shows
-        xyz, quat = kinematics.ee_pose(js.position[now][None])
+        xyz, quat = ee_pose(js.position[now][None])
         acts = ((np.linalg.norm(keyframe_xyz - xyz, axis=1) > NO_OP_DISTANCE)
                 | (rotations.angle_between(keyframe_quat, quat) > NO_OP_ANGLE)
                 | (js.gripper_open[keyframes] != js.gripper_open[now]))
@@ -166,7 +145,7 @@ def default_cache_dir(data_dir) -> Path:
     return data_dir.with_name(data_dir.name + '_cache')
 
 
-def load_samples(bag: Path, cache_dir: Path, kinematics: PandaKinematics) -> dict:
+def load_samples(bag: Path, cache_dir: Path) -> dict:
     """episode_samples of ``bag``, from the cache when it is current, else decoded and cached."""
     cached = cache_dir / f'{bag.name}.npz'
     fingerprint = _fingerprint(bag)
@@ -174,7 +153,7 @@ def load_samples(bag: Path, cache_dir: Path, kinematics: PandaKinematics) -> dic
         with np.load(cached) as stored:
             if str(stored['fingerprint']) == fingerprint:
                 return {k: stored[k] for k in stored.files if k != 'fingerprint'}
-    samples = episode_samples(read_episode(bag), kinematics)
+    samples = episode_samples(read_episode(bag))
     cache_dir.mkdir(parents=True, exist_ok=True)
     partial = cached.with_suffix('.partial.npz')
     np.savez(partial, fingerprint=np.array(fingerprint), **samples)
@@ -235,12 +214,8 @@ class KeyframeDataset:
         if not bags:
             raise FileNotFoundError(f'no successful episodes in {data_dir}')
         cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(data_dir)
-        kinematics = PandaKinematics()
-        try:
-            return cls([load_samples(bag, cache_dir, kinematics)
-                        for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)])
-        finally:
-            kinematics.close()
+        return cls([load_samples(bag, cache_dir)
+                    for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)])
 
     def training_seeds(self) -> dict[str, list[int]]:
         """task -> the sorted seeds of its episodes: what evaluation must stay away from."""

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from hdp_msgs_py import panda
+from hdp_motion import panda
 
 from . import rotations, voxels
 from .language import MAX_WORDS, WordEncoder

@@ -20,7 +20,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hdp_msgs_py import conversions, panda, topics
+from hdp_motion import panda
+from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.msg import Header, JointState, Time
 
 from .language import words

@@ -8,7 +8,8 @@ node on wall time, so a dead simulator (whose /clock stops with it) is reported,
 
 import functools
 
-from hdp_msgs_py import panda, ros, topics
+from hdp_motion import panda
+from hdp_msgs_py import ros, topics
 from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, PoseStamped, String, TFMessage
 
 from .agent import NextBestPoseAgent

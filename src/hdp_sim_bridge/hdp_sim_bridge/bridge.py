@@ -11,7 +11,8 @@ import json
 
 import numpy as np
 
-from hdp_msgs_py import conversions, panda
+from hdp_motion import panda
+from hdp_msgs_py import conversions
 from hdp_msgs_py.msg import Clock, Header, TFMessage
 
 from .cameras import default_cameras

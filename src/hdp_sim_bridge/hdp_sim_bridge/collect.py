@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hdp_msgs_py import conversions, panda, topics
+from hdp_motion import panda
+from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.episodes import EpisodeWriter
 from hdp_msgs_py.msg import Header, JointState, String, TFMessage
 

@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 import rclpy
 
-from hdp_msgs_py import conversions, panda, ros, topics
+from hdp_motion import panda
+from hdp_msgs_py import conversions, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
 
 from .launch_cli import NODES, default_params_file, node_commands, running_nodes
@@ -314,25 +315,12 @@ def caption(frame: np.ndarray, text: str) -> np.ndarray:
 
 
 def ee_positions(q: np.ndarray) -> np.ndarray:
-    """World positions (N, 3) of panda_grasptarget for arm joint positions (N, 7): the sim's own
-    forward kinematics (its URDF and base pose), so the path sits where the NBPs are given."""
-    import pybullet
-    import pybullet_data
-    from pybullet_utils.bullet_client import BulletClient
+    """World positions (N, 3) of panda_grasptarget for arm joint positions (N, 7)."""
+    import torch
 
-    from .world import ARM_JOINT_IDS, EE_LINK, ROBOT_BASE
-    client = BulletClient(connection_mode=pybullet.DIRECT)
-    try:
-        client.setAdditionalSearchPath(pybullet_data.getDataPath())
-        robot = client.loadURDF('franka_panda/panda.urdf', ROBOT_BASE, useFixedBase=True)
-        path = []
-        for row in np.asarray(q, dtype=float).reshape(-1, 7):
-            for joint, value in zip(ARM_JOINT_IDS, row):
-                client.resetJointState(robot, joint, value)
-            path.append(client.getLinkState(robot, EE_LINK, computeForwardKinematics=True)[4])
-        return np.array(path, dtype=float).reshape(-1, 3)
-    finally:
-        client.disconnect()
+    from hdp_motion import kinematics
+    pose = kinematics.fk_pose(torch.as_tensor(np.asarray(q, dtype=np.float64).reshape(-1, 7)))
+    return pose[:, :3].numpy()
 
 
 def wall_to_sim(events_s, wall_s, sim_s) -> np.ndarray:

@@ -11,9 +11,8 @@ import dataclasses
 
 import numpy as np
 
-from hdp_msgs_py import panda
+from hdp_motion import panda, planning, timing
 
-from . import motion
 from .trajectory_follower import ActiveTrajectory
 from .world import TIME_STEP
 
@@ -44,11 +43,11 @@ def via_path(world, poses, q_start) -> np.ndarray:
     """Joint path through a chain of poses, each IK seeded by the previous: (N,7)."""
     path, q = [q_start], q_start
     for xyz, quat in poses:
-        q = motion.solve_ik(_cid(world), world.robot, xyz, quat, q)
+        q = planning.solve_ik(_cid(world), world.robot, xyz, quat, q)
         if q is None or np.max(np.abs(q - path[-1])) > 0.5:
             raise ExpertFailure('no continuous IK solution along the arc')
         path.append(q)
-    return motion.resample_path(np.array(path), max(2, 8 * len(path)))
+    return timing.resample_path(np.array(path), max(2, 8 * len(path)))
 
 
 def _cid(world) -> int:
@@ -73,24 +72,24 @@ def plan(world, task, waypoint, rng, config: ExpertConfig, q_goal=None) -> np.nd
         # Straight moves go into contact (grasps) or carry what is held: only the
         # table and what is not being handled may stop them.
         others = [b for b in obstacles if b not in (held, world.grasped_body()) and b not in task.touched]
-        path = motion.linear_path(_cid(world), world.robot, q_start, xyz, quat,
+        path = planning.linear_path(_cid(world), world.robot, q_start, xyz, quat,
                                   obstacles=[world.table] + others, attached=held)
         if path is None:
             raise ExpertFailure(f'no straight-line path to {np.round(xyz, 3).tolist()}')
         return path
     if q_goal is None:
-        q_goal = motion.solve_ik(_cid(world), world.robot, xyz, quat, q_start)
+        q_goal = planning.solve_ik(_cid(world), world.robot, xyz, quat, q_start)
         if q_goal is None:
             raise ExpertFailure(f'no IK solution for {np.round(xyz, 3).tolist()}')
     # As RLBench: a straight line when there is one, else RRT-Connect. A share of
     # demos take the planner's unsimplified path anyway, so trajectory rank varies.
     sub_optimal = rng.random() < config.unsmoothed_probability
     if not sub_optimal:
-        path = motion.linear_path(_cid(world), world.robot, q_start, xyz, quat, obstacles=obstacles,
+        path = planning.linear_path(_cid(world), world.robot, q_start, xyz, quat, obstacles=obstacles,
                                   attached=held)
         if path is not None and np.max(np.abs(path[-1] - q_goal)) < 0.1:
             return path
-    path = motion.rrt_connect(_cid(world), world.robot, q_start, q_goal, obstacles,
+    path = planning.rrt_connect(_cid(world), world.robot, q_start, q_goal, obstacles,
                               timeout=config.rrt_timeout, seed=int(rng.integers(2**31)),
                               simplify=not sub_optimal, attached=held)
     if path is None:
@@ -105,8 +104,8 @@ def follow(world, task, path: np.ndarray, config: ExpertConfig, on_step, on_arri
     JointTrajectory with velocities (a cubic spline), so demonstrations and
     policies move the arm alike.
     """
-    times = motion.time_parameterize(path, velocity_scale=config.velocity_scale)
-    velocities = motion.path_velocities(path, times, config.velocity_scale)
+    times = timing.time_parameterize(path, velocity_scale=config.velocity_scale)
+    velocities = timing.path_velocities(path, times, config.velocity_scale)
     trajectory = ActiveTrajectory(world.sim_time, times, path, velocities)
     while world.sim_time < trajectory.end_time:
         world.command_arm(trajectory.sample(world.sim_time + TIME_STEP))
@@ -162,10 +161,10 @@ def _ik_chain(world, waypoints, q_first_seed) -> tuple[float, np.ndarray | None]
     for waypoint in waypoints:
         for xyz, quat in waypoint.poses:
             if waypoint.path == 'linear' and first is not None:   # the whole line, as executed
-                line = motion.linear_path(_cid(world), world.robot, q, xyz, quat, obstacles=[world.table])
+                line = planning.linear_path(_cid(world), world.robot, q, xyz, quat, obstacles=[world.table])
                 q = None if line is None else line[-1]
             else:
-                q = motion.solve_ik(_cid(world), world.robot, xyz, quat, q)
+                q = planning.solve_ik(_cid(world), world.robot, xyz, quat, q)
             if q is None or (first is not None and np.max(np.abs(q - q_prev)) > 0.5):
                 return -np.inf, None
             first = q if first is None else first
@@ -190,14 +189,14 @@ def choose_waypoints(world, task) -> tuple[list, np.ndarray | None]:
     # from a nearby start
     jitter = np.random.default_rng(0).normal(0.0, 0.4, (4, 7))
     seeds += list(np.clip(seeds[1] + jitter, panda.LOWER, panda.UPPER))
-    valid = motion.collision_checker(_cid(world), world.robot, [world.table] + world.task_bodies)
+    valid = planning.collision_checker(_cid(world), world.robot, [world.table] + world.task_bodies)
     best = (-np.inf, task.waypoints(world), None)
     for flip in (False, True):
         waypoints = task.waypoints(world, flip)
         for seed in seeds:
             margin, first = _ik_chain(world, waypoints, seed)
             if first is not None:
-                with motion.preserved_state(_cid(world), world.robot):
+                with planning.preserved_state(_cid(world), world.robot):
                     if not valid(first):      # the first goal must be free to plan to
                         continue
             if margin > best[0]:

@@ -18,7 +18,8 @@ import dataclasses
 
 import numpy as np
 
-from hdp_msgs_py import conversions, panda
+from hdp_motion import panda
+from hdp_msgs_py import conversions
 
 VELOCITY_TOLERANCE = 1.02   # allow 2 % over the limit for rounding in time stamps
 

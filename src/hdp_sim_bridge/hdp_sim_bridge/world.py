@@ -30,7 +30,9 @@ import pybullet
 import pybullet_data
 from pybullet_utils.bullet_client import BulletClient
 
-from hdp_msgs_py import panda
+from hdp_motion import panda
+from hdp_motion.panda import ROBOT_BASE
+from hdp_motion.planning import ARM_JOINT_IDS, EE_LINK_ID
 from hdp_msgs_py.workspace import TABLE_TOP_Z, WORKSPACE  # noqa: F401  (re-exported)
 
 TIME_STEP = 1.0 / 240.0           # s
@@ -39,12 +41,9 @@ GRAVITY = -9.81                   # m/s^2
 TABLE_CENTER_XY = (0.35, 0.0)     # m
 # m; a solid block from the floor up (no legs to see between): x -0.2..0.9, y -0.6..0.6.
 TABLE_HALF_EXTENTS = (0.55, 0.6, TABLE_TOP_Z / 2)
-ROBOT_BASE = (0.0, 0.0, TABLE_TOP_Z)      # m, the Panda's base frame (link 0), facing +x
 
-ARM_JOINT_IDS = tuple(range(7))
 FINGER_JOINT_IDS = (9, 10)
 HAND_LINK = 8
-EE_LINK = 11                      # panda_grasptarget, 0.105 m beyond the hand flange
 
 ARM_FORCES = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])   # Nm, the Panda's limits
 # rad/s^2: half the Franka datasheet maxima; at full maxima the 87 Nm of joint 2 saturate in
@@ -259,7 +258,7 @@ class PandaWorld:
 
     def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """World pose of panda_grasptarget: position (3,) m, quaternion (4,) x, y, z, w."""
-        state = self.client.getLinkState(self.robot, EE_LINK, computeForwardKinematics=True)
+        state = self.client.getLinkState(self.robot, EE_LINK_ID, computeForwardKinematics=True)
         return np.array(state[4]), np.array(state[5])
 
     # --- gripper and grasp ---------------------------------------------------------------

@@ -1,0 +1,1 @@
+"""The Franka Panda as every HDP package sees it: model constants, kinematics, timing, planning."""
