@@ -42,7 +42,7 @@ setup(
             'eval.low-level = hdp_controller.eval_cli:configure',
             'train.low-level = hdp_controller.cli:configure_train',
             'bench.controller = hdp_controller.bench:configure',
-            'plot.low-level = hdp_controller.figures:configure',
+            'plot.low-level = hdp_controller.eval_cli:configure_plot',
         ],
     },
 )

@@ -8,8 +8,6 @@ import json
 
 import yaml
 
-from .rk_diffuser import RKDConfig
-
 
 def _device(name: str) -> str:
     import torch
@@ -49,6 +47,7 @@ def _train(args) -> int:
         if not isinstance(values, dict) or set(values) - {'model', 'train'}:
             raise SystemExit(f'{args.config}: expected a mapping with "model" and/or "train" keys')
     try:
+        from .rk_diffuser import RKDConfig      # torch: only once a command runs
         model_config = RKDConfig.from_dict(values.get('model') or {})
         train_values = dict(values.get('train') or {})
         for key in ('steps', 'batch_size', 'seed'):

@@ -21,17 +21,18 @@ _CAMERA = 'front'              # RK-Diffuser sees the front camera only, as in t
 
 
 class ControllerNode(ros.Node):
+    PARAMETERS = {
+        'method': ('rkd', f'low-level method: {" | ".join(METHODS)}'),
+        'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser.pt ($HDP_MODELS_DIR)"),
+        'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
+        'segment_timeout_s': (10.0, 's after the trajectory ends before the segment has failed'),
+        'velocity_scale': (VELOCITY_SCALE, "fraction of the Panda's velocity limits, (0, 1]"),
+        'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
+    }
 
     def __init__(self):
         super().__init__('controller_node')
-        self.declare_parameter('method', 'rkd')                 # rkd | planner | pose_ik | joint
-        self.declare_parameter('checkpoint', '')                # '' = models/rk_diffuser.pt
-        self.declare_parameter('sampler', 'ddim')               # ddim (5 steps, fast) | ddpm (100)
-        self.declare_parameter('segment_timeout_s', 10.0)       # after the trajectory's end
-        self.declare_parameter('velocity_scale', VELOCITY_SCALE)  # of the Panda's velocity limits
-        self.declare_parameter('joint_prefix', 'panda')         # 'fr3' for an FR3
-        p = {name: self.get_parameter(name).value for name in (
-            'method', 'checkpoint', 'sampler', 'segment_timeout_s', 'velocity_scale', 'joint_prefix')}
+        p = self.declare_parameter_table()
         if p['method'] not in METHODS:
             raise ros.StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
         if not 0.0 < p['velocity_scale'] <= 1.0:

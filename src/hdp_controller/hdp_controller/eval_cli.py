@@ -1,4 +1,5 @@
-"""`hdp eval low-level`: low-level methods on oracle next-best poses (the paper's Table 2)."""
+"""`hdp eval low-level` (the paper's Table 2: low-level methods on oracle next-best poses) and
+`hdp plot low-level` (its Fig. 4)."""
 
 from __future__ import annotations
 
@@ -82,4 +83,30 @@ def run(args) -> int:
           f'{(time.monotonic() - start) / 60:.1f} min')
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+def configure_plot(parser) -> None:
+    parser.description = ('Plot pose trajectory, joint trajectory (FK), refined trajectory and planner path '
+                          'for one oracle episode, like the paper\'s Fig. 4.')
+    parser.add_argument('--task', default='open_box')
+    parser.add_argument('--seed', type=int, default=3000, help='evaluation seed (default 3000)')
+    parser.add_argument('--checkpoint', help='RK-Diffuser checkpoint (default: the released one)')
+    parser.add_argument('--segment', type=int, default=-1, help='segment to show, 1-based (default: the last)')
+    parser.add_argument('--out', required=True, help='PNG to write')
+    parser.set_defaults(func=run_plot)
+
+
+def run_plot(args) -> int:
+    from .figures import plot, segments_of_episode
+    from .policy import load_policy
+    policy = load_policy('rkd', args.checkpoint, 'ddpm')
+    segments = segments_of_episode(policy, args.task, args.seed)
+    if not segments:
+        raise SystemExit(f'hdp plot low-level: RK-Diffuser planned no segment on {args.task} seed {args.seed}')
+    chosen = len(segments) - 1 if args.segment == -1 else args.segment - 1
+    if not 0 <= chosen < len(segments):
+        raise SystemExit(f'hdp plot low-level: --segment must be 1..{len(segments)}')
+    plot(segments[chosen], f'{args.task} seed {args.seed}, segment {chosen + 1} of {len(segments)}', args.out)
+    print(f'wrote {args.out}')
     return 0

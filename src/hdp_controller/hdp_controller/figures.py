@@ -81,28 +81,3 @@ def plot(segment: dict, title: str, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-def configure(parser) -> None:
-    parser.description = ('Plot pose trajectory, joint trajectory (FK), refined trajectory and planner path '
-                          'for one oracle episode, like the paper\'s Fig. 4.')
-    parser.add_argument('--task', default='open_box')
-    parser.add_argument('--seed', type=int, default=3000, help='evaluation seed (default 3000)')
-    parser.add_argument('--checkpoint', help='RK-Diffuser checkpoint (default: the released one)')
-    parser.add_argument('--segment', type=int, default=-1, help='segment to show, 1-based (default: the last)')
-    parser.add_argument('--out', required=True, help='PNG to write')
-    parser.set_defaults(func=run)
-
-
-def run(args) -> int:
-    from .policy import load_policy
-    policy = load_policy('rkd', args.checkpoint, 'ddpm')
-    segments = segments_of_episode(policy, args.task, args.seed)
-    if not segments:
-        raise SystemExit(f'hdp plot low-level: RK-Diffuser planned no segment on {args.task} seed {args.seed}')
-    chosen = len(segments) - 1 if args.segment == -1 else args.segment - 1
-    if not 0 <= chosen < len(segments):
-        raise SystemExit(f'hdp plot low-level: --segment must be 1..{len(segments)}')
-    plot(segments[chosen], f'{args.task} seed {args.seed}, segment {chosen + 1} of {len(segments)}', args.out)
-    print(f'wrote {args.out}')
-    return 0

@@ -26,7 +26,9 @@ from pathlib import Path
 import rclpy
 import rclpy.node
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
+from rclpy.utilities import remove_ros_args
 
 from . import topics
 from .msg import String
@@ -62,7 +64,20 @@ class StartupError(Exception):
 
 
 class Node(rclpy.node.Node):
-    """rclpy's Node whose subscription and timer callbacks log exceptions instead of ending spin."""
+    """rclpy's Node whose subscription and timer callbacks log exceptions instead of ending spin.
+
+    A node lists its parameters once, in PARAMETERS (name -> (default, description)):
+    ``declare_parameter_table()`` declares them and returns their values, and
+    ``--help`` prints them.
+    """
+
+    PARAMETERS: dict = {}
+
+    def declare_parameter_table(self) -> dict:
+        """Declare every entry of PARAMETERS (with its description); their values by name."""
+        for name, (default, description) in self.PARAMETERS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=description))
+        return {name: self.get_parameter(name).value for name in self.PARAMETERS}
 
     def _guard(self, what, callback):
         @functools.wraps(callback)
@@ -103,13 +118,26 @@ class Status:
         (self.error if level == 'error' else self.info)(text)
 
 
+def usage(node_class, name: str) -> str:
+    """The --help text of a node executable: its module's summary and its parameters."""
+    summary = (sys.modules[node_class.__module__].__doc__ or '').strip()
+    lines = [f'usage: {name} [--ros-args -p NAME:=VALUE ... --params-file FILE -r FROM:=TO ...]', '',
+             summary, '', 'parameters:']
+    for parameter, (default, description) in node_class.PARAMETERS.items():
+        lines.append(f'  {parameter} (default {default!r}): {description}')
+    return '\n'.join(lines)
+
+
 def run(node_class, args=None, name: str = '') -> None:
     """A node executable's main(): init, construct, spin, shut down cleanly.
 
     Ctrl-C and SIGTERM end the spin; the node is destroyed either way. A
     StartupError or a parameter of the wrong type or value ends the process
-    with exit status 1 and one line on stderr.
+    with exit status 1 and one line on stderr. ``-h``/``--help`` prints usage().
     """
+    if {'-h', '--help'} & set(remove_ros_args(sys.argv if args is None else args)[1:]):
+        print(usage(node_class, name))
+        return
     init(args=args)
     try:
         node = node_class()

@@ -19,16 +19,17 @@ _STEP_S = 0.1
 
 
 class PlannerNode(ros.Node):
+    PARAMETERS = {
+        'checkpoint': ('', "next-best-pose agent; '' = models/hdp_nbp_agent.pt ($HDP_MODELS_DIR)"),
+        'max_segments': (8, 'segments per instruction before it has failed'),
+        'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
+        'result_timeout_s': (60.0, 's to wait for a segment result before the next segment'),
+        'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
+    }
 
     def __init__(self):
         super().__init__('planner_node')
-        self.declare_parameter('checkpoint', '')              # '' = models/hdp_nbp_agent.pt
-        self.declare_parameter('max_segments', 8)
-        self.declare_parameter('camera_timeout_s', 5.0)        # for fresh frames from both cameras
-        self.declare_parameter('result_timeout_s', 60.0)       # for a segment result; then the next segment
-        self.declare_parameter('joint_prefix', 'panda')        # 'fr3' for an FR3
-        p = {name: self.get_parameter(name).value for name in (
-            'checkpoint', 'max_segments', 'camera_timeout_s', 'result_timeout_s', 'joint_prefix')}
+        p = self.declare_parameter_table()
         if p['max_segments'] < 1:
             raise ros.StartupError(f"parameter 'max_segments' must be >= 1, got {p['max_segments']}")
         for name in ('camera_timeout_s', 'result_timeout_s'):

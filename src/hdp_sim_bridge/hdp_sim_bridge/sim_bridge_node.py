@@ -19,20 +19,20 @@ _MAX_STEPS_PER_TICK = 48              # catch up at most 0.2 s of sim time per t
 
 
 class SimBridgeNode(ros.Node):
+    PARAMETERS = {
+        'task': ('reach_target', 'the task of the first episode (later ones: /hdp/sim/reset)'),
+        'seed': (0, 'its seed: scene layout and variation'),
+        'variation': (-1, 'its variation; -1 draws it from the seed'),
+        'camera_width': (640, 'px, both cameras'),
+        'camera_height': (480, 'px, both cameras'),
+        'camera_rate_hz': (2.0, 'frames per second of sim time; 0 turns the cameras off'),
+        'joint_state_rate_hz': (120.0, '/joint_states per second of sim time'),
+        'real_time_factor': (1.0, 'sim time per wall time; 0 runs as fast as possible'),
+    }
 
     def __init__(self):
         super().__init__('sim_bridge_node')
-        self.declare_parameter('task', 'reach_target')
-        self.declare_parameter('seed', 0)
-        self.declare_parameter('variation', -1)                 # -1: drawn from the seed
-        self.declare_parameter('camera_width', 640)
-        self.declare_parameter('camera_height', 480)
-        self.declare_parameter('camera_rate_hz', 2.0)           # of sim time; 0 turns cameras off
-        self.declare_parameter('joint_state_rate_hz', 120.0)    # of sim time
-        self.declare_parameter('real_time_factor', 1.0)         # 0: as fast as possible
-        p = {name: self.get_parameter(name).value for name in (
-            'task', 'seed', 'variation', 'camera_width', 'camera_height', 'camera_rate_hz',
-            'joint_state_rate_hz', 'real_time_factor')}
+        p = self.declare_parameter_table()
         self._rtf = p['real_time_factor']
         self._joint_every = max(1, round(1.0 / (p['joint_state_rate_hz'] * TIME_STEP)))
         self._camera_every = round(1.0 / (p['camera_rate_hz'] * TIME_STEP)) if p['camera_rate_hz'] > 0 else 0

@@ -25,8 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
                 groups[prefix] = parsers[prefix].add_subparsers(title='commands', metavar='COMMAND')
                 parsers[prefix].set_defaults(func=lambda args, p=parsers[prefix]: p.print_help() or 2)
         configure = entry.load()
-        sub = groups[path[:-1]].add_parser(path[-1], help=(configure.__doc__ or '').strip().split('\n')[0],
-                                           description=(configure.__doc__ or '').strip())
+        doc = (configure.__doc__ or '').strip().replace('%', '%%')     # argparse formats help with %
+        sub = groups[path[:-1]].add_parser(path[-1], help=doc.split('\n')[0], description=doc)
         configure(sub)
     return parser
 
