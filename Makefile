@@ -3,7 +3,7 @@
 PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV   := .venv
 PY     := $(VENV)/bin/python
-PKGS   := hdp_motion hdp_msgs_py hdp_planner hdp_controller hdp_sim_bridge
+PKGS   := hdp_motion hdp_msgs_py hdp_planner hdp_controller hdp_sim_bridge hdp_eval hdp_bringup
 STAMP  := $(VENV)/.stamp
 # ROS 2 interface packages the registry has no wheels for, built with rosidl.
 ROS_IFACES := src/hdp_msgs_py/ros_interfaces

@@ -50,8 +50,10 @@ def _setup_requires(package: str) -> set[str]:
 
 @pytest.mark.parametrize('package', PACKAGES)
 def test_declared_hdp_dependencies_are_the_imported_ones(package):
+    """Imported ones, plus, for hdp_bringup, the packages whose node executables it starts."""
+    from hdp_bringup.launch_cli import NODES
     root = ElementTree.parse(SRC / package / 'package.xml').getroot()
     declared = {e.text for e in root.findall('exec_depend') if e.text.startswith('hdp_')}
-    imported = _hdp_imports(package)
+    imported = _hdp_imports(package) | (set(NODES.values()) if package == 'hdp_bringup' else set())
     assert declared == imported, f'package.xml of {package}: declares {sorted(declared)}, imports {sorted(imported)}'
     assert _setup_requires(package) == imported, f'setup.py of {package}'

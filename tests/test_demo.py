@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from hdp_sim_bridge import demo
+from hdp_bringup import demo
 
 
 def _hdp(*args) -> list[str]:

@@ -28,14 +28,14 @@ from hdp_controller.observation import CAMERA_SIZE
 from hdp_motion import panda
 from hdp_msgs_py import conversions, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointTrajectory, Point, Pose, PoseStamped, Quaternion, String, Time
-from hdp_planner.hierarchy import episode_instruction
+from hdp_eval.hierarchy_eval import episode_instruction
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 
 pytestmark = pytest.mark.timeout(900)
 
 REPO = Path(__file__).resolve().parents[1]
-PARAMS = REPO / 'src' / 'hdp_sim_bridge' / 'config' / 'hdp_graph.yaml'
+PARAMS = REPO / 'src' / 'hdp_bringup' / 'config' / 'hdp_graph.yaml'
 PACKAGES = {'sim_bridge_node': 'hdp_sim_bridge', 'planner_node': 'hdp_planner', 'controller_node': 'hdp_controller'}
 # Twice the longest healthy segment measured here (10.4 s: RK-Diffuser planning, motion and
 # settling on a loaded 2-core machine), so only a dead controller runs into it.

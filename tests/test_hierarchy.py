@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from hdp_controller.baselines import PlannerPolicy
-from hdp_controller.evaluation import oracle_episode
+from hdp_eval.low_level_eval import oracle_episode
 from hdp_planner import language
 from hdp_planner.agent import NextBestPose
-from hdp_planner.hierarchy import episode_instruction, evaluate, markdown_table, run_episode
+from hdp_eval.hierarchy_eval import episode_instruction, evaluate, markdown_table, run_episode
 
 HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
 

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from hdp_controller.baselines import PlannerPolicy, PoseIKPolicy
-from hdp_controller.evaluation import distinct_nbps, evaluate, markdown_table, oracle_episode, run_episode
+from hdp_eval.low_level_eval import distinct_nbps, evaluate, markdown_table, oracle_episode, run_episode
 from hdp_controller.low_level import HORIZON, PlanResult
-from hdp_controller.observation import front_camera, front_points, points_from_messages, segment_request
+from hdp_controller.observation import points_from_messages
+from hdp_eval.observation import front_camera, front_points, segment_request
 from hdp_motion import planning
 from hdp_msgs_py import conversions, workspace
 from hdp_msgs_py.episodes import read_episode

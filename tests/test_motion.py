@@ -161,3 +161,22 @@ def test_resample_path_spaces_waypoints_evenly():
     assert resampled.shape == (9, 7)
     assert np.allclose(resampled[[0, -1]], path[[0, -1]])
     assert np.allclose(np.diff(resampled, axis=0), 0.05)
+
+
+def test_quat_angle_is_sign_invariant_and_agrees_with_torchs_pose_error():
+    import torch
+
+    from hdp_motion.kinematics import pose_error
+    from hdp_motion.rotations import quat_angle
+    quarter_turn_z = [0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)]
+    assert quat_angle(DOWN, DOWN) == 0.0
+    assert math.isclose(quat_angle([0, 0, 0, 1], quarter_turn_z), math.pi / 2)
+    assert math.isclose(quat_angle([0, 0, 0, -3], quarter_turn_z), math.pi / 2)     # any sign and length
+    rng = np.random.default_rng(0)
+    qa, qb = rng.normal(size=(2, 100, 4))
+    angles = quat_angle(qa, qb)
+    assert angles.shape == (100,) and np.array_equal(angles, quat_angle(-qa, qb))
+    poses = [torch.tensor(np.concatenate([np.zeros((100, 3)), q], 1)) for q in (qa, qb)]
+    assert np.allclose(angles, pose_error(*poses)[1].numpy(), atol=1e-7)
+    unit_a, unit_b = (q / np.linalg.norm(q, axis=-1, keepdims=True) for q in (qa, qb))
+    assert np.allclose(angles, [rotation_angle(a, b) for a, b in zip(unit_a, unit_b)], atol=1e-9)

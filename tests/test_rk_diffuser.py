@@ -434,7 +434,7 @@ def test_joint_trajectory_is_timed_within_limits_and_refuses_bad_waypoints():
 
 
 def test_fig4_plot_writes_a_png(tmp_path):
-    from hdp_controller.figures import plot
+    from hdp_eval.figures import plot
     line = np.linspace([0.4, 0.0, 1.0], [0.6, 0.1, 0.9], HORIZON)
     segment = {'poses': line, 'joint_fk': line + 0.01, 'refined_fk': line, 'planner_fk': line[::4]}
     plot(segment, 'test', tmp_path / 'fig.png')

@@ -15,7 +15,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / 'src'
-PACKAGES = ('hdp_motion', 'hdp_msgs_py', 'hdp_planner', 'hdp_controller', 'hdp_sim_bridge')
+PACKAGES = ('hdp_motion', 'hdp_msgs_py', 'hdp_planner', 'hdp_controller', 'hdp_sim_bridge', 'hdp_eval', 'hdp_bringup')
 # package -> the node executable `ros2 run <package> <executable>` starts
 NODES = {
     'hdp_planner': 'planner_node',
@@ -116,12 +116,11 @@ def test_colcon_build_installs_ros_layout(tmp_path):
         assert (site / pkg / f'{exe}.py').is_file()
     assert os.access(install / 'hdp_msgs_py' / 'lib' / 'hdp_msgs_py' / 'hdp', os.X_OK)
 
-    bridge_share = install / 'hdp_sim_bridge' / 'share' / 'hdp_sim_bridge'
-    assert (bridge_share / 'launch' / 'hdp_graph.launch.py').is_file()
-    assert (bridge_share / 'config' / 'hdp_graph.yaml').is_file()
-    controller_share = install / 'hdp_controller' / 'share' / 'hdp_controller'
-    assert (controller_share / 'launch' / 'hdp_real_panda.launch.py').is_file()
-    assert (controller_share / 'config' / 'hdp_real_panda.yaml').is_file()
+    bringup_share = install / 'hdp_bringup' / 'share' / 'hdp_bringup'
+    for launch in ('hdp_graph.launch.py', 'hdp_real_panda.launch.py'):
+        assert (bringup_share / 'launch' / launch).is_file(), launch
+    for params in ('hdp_graph.yaml', 'hdp_real_panda.yaml'):
+        assert (bringup_share / 'config' / params).is_file(), params
 
     # The ROS interface definitions ship inside hdp_msgs_py (package_data);
     # checked once the Python package itself exists.
@@ -136,11 +135,11 @@ def test_real_robot_parameters_are_ones_the_nodes_declare():
     """The untested real-robot YAML may only set parameters the sim graph's YAML (exercised by
     the graph tests) sets for the same node; its launch file at least compiles."""
     import yaml
-    graph = yaml.safe_load((SRC / 'hdp_sim_bridge' / 'config' / 'hdp_graph.yaml').read_text())
-    real = yaml.safe_load((SRC / 'hdp_controller' / 'config' / 'hdp_real_panda.yaml').read_text())
+    graph = yaml.safe_load((SRC / 'hdp_bringup' / 'config' / 'hdp_graph.yaml').read_text())
+    real = yaml.safe_load((SRC / 'hdp_bringup' / 'config' / 'hdp_real_panda.yaml').read_text())
     assert set(real) == {'planner_node', 'controller_node'}
     for node, section in real.items():
         unknown = set(section['ros__parameters']) - set(graph[node]['ros__parameters'])
         assert not unknown, (node, unknown)
-    launch = SRC / 'hdp_controller' / 'launch' / 'hdp_real_panda.launch.py'
+    launch = SRC / 'hdp_bringup' / 'launch' / 'hdp_real_panda.launch.py'
     compile(launch.read_text(), str(launch), 'exec')

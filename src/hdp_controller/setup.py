@@ -11,7 +11,6 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
     ],
     install_requires=[
@@ -39,10 +38,7 @@ setup(
             'controller_node = hdp_controller.controller_node:main',
         ],
         'hdp.commands': [
-            'eval.low-level = hdp_controller.eval_cli:configure',
             'train.low-level = hdp_controller.cli:configure_train',
-            'bench.controller = hdp_controller.bench:configure',
-            'plot.low-level = hdp_controller.eval_cli:configure_plot',
         ],
     },
 )

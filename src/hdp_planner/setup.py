@@ -12,7 +12,6 @@ setup(
     ],
     install_requires=[
         'setuptools',
-        'hdp_controller',
         'hdp_motion',
         'hdp_msgs_py',
         'hdp_sim_bridge',
@@ -34,7 +33,6 @@ setup(
         'hdp.commands': [
             'train.high-level = hdp_planner.cli:configure_train',
             'eval.high-level-offline = hdp_planner.cli:configure_eval',
-            'eval.hierarchy = hdp_planner.cli:configure_hierarchy',
         ],
     },
 )

@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import find_packages, setup
 
 package_name = 'hdp_sim_bridge'
@@ -11,8 +9,6 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
-        ('share/' + package_name + '/config', glob('config/*.yaml')),
     ],
     install_requires=[
         'setuptools',
@@ -29,7 +25,7 @@ setup(
     zip_safe=True,
     maintainer='HDP-ROS developers',
     maintainer_email='hdp-ros@example.com',
-    description='PyBullet Panda + D415 stand-in, scripted experts, sim_bridge_node, launch',
+    description='PyBullet Panda + D415 stand-in, tasks, scripted experts, sim_bridge_node',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
@@ -39,8 +35,6 @@ setup(
             'collect = hdp_sim_bridge.cli:configure_collect',
             'render = hdp_sim_bridge.cli:configure_render',
             'bench.sim = hdp_sim_bridge.cli:configure_bench_sim',
-            'launch = hdp_sim_bridge.launch_cli:configure',
-            'demo = hdp_sim_bridge.demo:configure',
         ],
     },
 )

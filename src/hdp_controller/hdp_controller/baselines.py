@@ -18,6 +18,7 @@ import functools
 import numpy as np
 
 from hdp_motion import panda, planning
+from hdp_motion.rotations import quat_angle
 from hdp_sim_bridge.world import PandaWorld
 
 from .low_level import PlanResult, Scene, SegmentRequest
@@ -45,8 +46,8 @@ def _free_attached_body(scene: Scene) -> int | None:
 
 def _at_pose(pose, goal) -> bool:
     """Whether two (7,) xyz + quat xyzw poses agree within IK's tolerances."""
-    angle = 2.0 * np.arccos(min(1.0, abs(float(np.dot(pose[3:], goal[3:])))))
-    return bool(np.linalg.norm(pose[:3] - goal[:3]) < planning.IK_POS_TOL and angle < planning.IK_ROT_TOL)
+    return bool(np.linalg.norm(pose[:3] - goal[:3]) < planning.IK_POS_TOL
+                and quat_angle(pose[3:], goal[3:]) < planning.IK_ROT_TOL)
 
 
 class PlannerPolicy:

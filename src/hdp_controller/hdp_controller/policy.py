@@ -9,12 +9,13 @@ All three come from one checkpoint, so they see the same conditions.
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from hdp_msgs_py import checkpoints
 
 from . import checkpoint
 from .low_level import PlanResult, Scene, SegmentRequest
@@ -35,8 +36,7 @@ REFINE_STEPS = 50
 
 def default_checkpoint() -> Path:
     """$HDP_MODELS_DIR/rk_diffuser.pt, else the repository's models/rk_diffuser.pt."""
-    models = Path(os.environ.get('HDP_MODELS_DIR') or Path(__file__).resolve().parents[3] / 'models')
-    return models / DEFAULT_CHECKPOINT_NAME
+    return checkpoints.default_path(DEFAULT_CHECKPOINT_NAME)
 
 
 def conditions(request: SegmentRequest) -> dict:

@@ -67,7 +67,7 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     schedule = get_cosine_schedule_with_warmup(optimizer, train_config.warmup_steps, train_config.steps)
     step, elapsed = 0, 0.0
     if resume_path.is_file():
-        state = torch.load(resume_path, map_location=device, weights_only=True)
+        state = checkpoint.read_resume(resume_path)    # on the CPU: the RNG state must stay there
         saved = (state['model_config'], state['train_config'], state.get('init'))
         wanted = (dataclasses.asdict(model_config), dataclasses.asdict(train_config), init_info)
         if any(_plain(a) != _plain(b) for a, b in zip(saved, wanted)):
@@ -141,6 +141,4 @@ def _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, mode
              'optimizer': optimizer.state_dict(), 'schedule': schedule.state_dict(),
              'torch_rng': torch.get_rng_state(), 'model_config': dataclasses.asdict(model_config),
              'train_config': dataclasses.asdict(train_config), 'init': init_info}
-    tmp = resume_path.with_name(resume_path.name + '.tmp')
-    torch.save(state, tmp)
-    tmp.replace(resume_path)
+    checkpoint.save_resume(resume_path, state)

@@ -26,6 +26,7 @@ import pybullet as p
 from ompl import base as ob, geometric as og, util as ou
 
 from .panda import LOWER, UPPER
+from .rotations import quat_angle
 
 # pybullet_data's franka_panda/panda.urdf: joint indices of panda_joint1..7, link index of
 # panda_grasptarget (panda.EE_LINK_ID)
@@ -92,11 +93,6 @@ def _overlap(box_a, box_b) -> bool:
                for lo_a, hi_a, lo_b, hi_b in zip(*box_a, *box_b))
 
 
-def _rotation_angle(qa, qb) -> float:
-    """Angle (rad) of the rotation between two unit quaternions."""
-    return 2.0 * math.acos(min(1.0, abs(float(np.dot(qa, qb)))))
-
-
 # ----------------------------------------------------------------- IK
 
 def solve_ik(client, robot, xyz, quat_xyzw, q_seed, rounds=20,
@@ -135,7 +131,7 @@ def solve_ik(client, robot, xyz, quat_xyzw, q_seed, rounds=20,
             _set_arm(client, robot, q)
             pos, orn = ee_pose(client, robot)
             if (np.linalg.norm(pos - xyz) < pos_tol
-                    and _rotation_angle(orn, quat) < rot_tol):
+                    and quat_angle(orn, quat) < rot_tol):
                 return q
     return None
 
@@ -236,7 +232,7 @@ def linear_path(client, robot, q_start, xyz_goal, quat_goal, obstacles=(), step=
         if np.dot(quat_start, quat_goal) < 0:   # slerp the short way round
             quat_goal = -quat_goal
         n = max(1, math.ceil(np.linalg.norm(xyz_goal - xyz_start) / step),
-                math.ceil(_rotation_angle(quat_start, quat_goal) / rot_step))
+                math.ceil(quat_angle(quat_start, quat_goal) / rot_step))
         valid = collision_checker(client, robot, obstacles, attached, margin)
         path = [q_start]
         for s in np.linspace(0.0, 1.0, n + 1)[1:]:

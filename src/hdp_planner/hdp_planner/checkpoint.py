@@ -1,61 +1,40 @@
-"""Checkpoints: plain dicts of tensors plus a JSON-able config, loadable with weights_only=True.
+"""Next-best-pose agent checkpoints: plain dicts of tensors plus a JSON-able config.
 
-    {'format': FORMAT, 'config': {'model': ..., 'train': ...}, 'model': state dict,
-     'optimizer': state dict, 'step': int, 'metrics': {...},
+    {'format': FORMAT, 'version': VERSION, 'config': {'model': ..., 'train': ...},
+     'model': state dict, 'optimizer': state dict, 'step': int, 'metrics': {...},
      'training_seeds': {task: [seed, ...]}}
 
-The config rebuilds the network with no other file; loading checks every
-tensor's name and shape against that network before using any of it.
+Written and read by hdp_msgs_py.checkpoints (atomic writes, size cap, weights-only
+loading, one CheckpointError); the released models/hdp_nbp_agent.pt predates the
+'version' field and reads as version 1. The config rebuilds the network with no
+other file; loading checks every tensor's name and shape against that network.
 """
 
 from __future__ import annotations
 
-import os
-import pickle
-import zipfile
-from pathlib import Path
-
-import torch
+from hdp_msgs_py import checkpoints
+from hdp_msgs_py.checkpoints import CheckpointError
 
 from .model import ModelConfig, NextBestPoseNet
 
-FORMAT = 'hdp_planner.next_best_pose/1'
-
-
-class CheckpointError(ValueError):
-    """A file that is not a readable, consistent next-best-pose checkpoint."""
+FORMAT = 'hdp_planner.next_best_pose'
+VERSION = 1
+FIELDS = {'config': dict, 'model': dict, 'step': int, 'metrics': dict, 'training_seeds': dict}
 
 
 def save(path, model: NextBestPoseNet, optimizer, step: int, train_config: dict, metrics: dict,
          training_seeds: dict) -> None:
     """Write atomically (a crash mid-save leaves the previous checkpoint intact)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    checkpoint = {'format': FORMAT,
-                  'config': {'model': model.config.to_dict(), 'train': train_config},
-                  'model': model.state_dict(),
-                  'optimizer': optimizer.state_dict() if optimizer is not None else {},
-                  'step': int(step), 'metrics': metrics, 'training_seeds': training_seeds}
-    partial = path.with_name(path.name + '.partial')
-    torch.save(checkpoint, partial)
-    os.replace(partial, path)
+    checkpoints.save(path, {'format': FORMAT, 'version': VERSION,
+                            'config': {'model': model.config.to_dict(), 'train': train_config},
+                            'model': model.state_dict(),
+                            'optimizer': optimizer.state_dict() if optimizer is not None else {},
+                            'step': int(step), 'metrics': metrics, 'training_seeds': training_seeds})
 
 
 def load(path) -> dict:
-    """The checkpoint dict at ``path``, read with weights_only=True; CheckpointError if it is not one."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f'{path}: no such checkpoint')
-    try:
-        checkpoint = torch.load(path, map_location='cpu', weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile, ValueError, OSError) as err:
-        raise CheckpointError(f'{path} is not a readable checkpoint (truncated or not a torch file?): {err}') from None
-    if not isinstance(checkpoint, dict) or checkpoint.get('format') != FORMAT:
-        raise CheckpointError(f'{path} is not a {FORMAT} checkpoint')
-    for key, kind in (('config', dict), ('model', dict), ('step', int), ('metrics', dict),
-                      ('training_seeds', dict)):
-        if not isinstance(checkpoint.get(key), kind):
-            raise CheckpointError(f'{path}: {key!r} is missing or not a {kind.__name__}')
+    """The checkpoint dict at ``path`` (tensors on the CPU); CheckpointError if it is not one."""
+    checkpoint = checkpoints.load(path, FORMAT, VERSION, FIELDS)
     seeds = checkpoint['training_seeds']
     if not all(isinstance(t, str) and isinstance(s, list) and all(isinstance(i, int) for i in s)
                for t, s in seeds.items()):
@@ -69,17 +48,7 @@ def build_model(checkpoint: dict, path='checkpoint') -> NextBestPoseNet:
         model = NextBestPoseNet(ModelConfig.from_dict(checkpoint['config']['model']))
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f'{path}: invalid model config: {err!r}') from None
-    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    stored = checkpoint['model']
-    found = {k: tuple(v.shape) for k, v in stored.items() if isinstance(v, torch.Tensor)}
-    problems = sorted(set(expected) ^ set(stored)) + [
-        f'{k}: {found.get(k)} != {shape}' for k, shape in expected.items() if k in stored and found.get(k) != shape]
-    if problems:
-        raise CheckpointError(f'{path}: weights do not match the config: {problems[:5]}'
-                              f'{" ..." if len(problems) > 5 else ""}')
-    if not all(torch.isfinite(v).all() for v in stored.values() if v.is_floating_point()):
-        raise CheckpointError(f'{path}: weights contain NaN or infinity')
-    model.load_state_dict(stored)
+    checkpoints.load_weights(path, model, checkpoint['model'])
     return model
 
 

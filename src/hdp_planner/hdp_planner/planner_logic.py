@@ -14,14 +14,13 @@ Times are seconds on the node's clock.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from hdp_motion import panda
-from hdp_msgs_py import conversions, topics
+from hdp_msgs_py import checkpoints, conversions, topics
 from hdp_msgs_py.msg import Header, JointState, Time
 
 from .language import words
@@ -34,8 +33,7 @@ DEFAULT_CHECKPOINT_NAME = 'hdp_nbp_agent.pt'
 
 def default_checkpoint() -> Path:
     """$HDP_MODELS_DIR/hdp_nbp_agent.pt, else the repository's models/hdp_nbp_agent.pt."""
-    models = Path(os.environ.get('HDP_MODELS_DIR') or Path(__file__).resolve().parents[3] / 'models')
-    return models / DEFAULT_CHECKPOINT_NAME
+    return checkpoints.default_path(DEFAULT_CHECKPOINT_NAME)
 
 
 class InstructionRefused(ValueError):

@@ -14,8 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from hdp_motion.rotations import quat_angle
+
 BIN_DEGREES = 5
 BINS = 360 // BIN_DEGREES
+
+angle_between = quat_angle      # (...,) geodesic angle in rad between two (..., 4) orientations
 
 
 def quat_to_matrix(quat) -> np.ndarray:
@@ -85,14 +89,6 @@ def yaw_quat(quat, angle) -> np.ndarray:
     x, y, z, w = np.moveaxis(q, -1, 0)
     # Hamilton product (0, 0, s, c) * (x, y, z, w)
     return np.stack([c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z], -1)
-
-
-def angle_between(quat_a, quat_b) -> np.ndarray:
-    """(...,) geodesic angle in rad between two (..., 4) orientations."""
-    a = np.asarray(quat_a, dtype=np.float64)
-    b = np.asarray(quat_b, dtype=np.float64)
-    dot = np.abs(np.sum(a * b, -1)) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return 2 * np.arccos(np.clip(dot, 0.0, 1.0))
 
 
 def flip_about_approach(quat) -> np.ndarray:

@@ -248,6 +248,12 @@ class PandaWorld:
                 targetVelocity=self._v_ref[joint], maxVelocity=self._speed_cap[joint],
                 force=servo_cap[joint], positionGain=POSITION_GAIN, velocityGain=1.0)
 
+    @property
+    def gripper_commanded_open(self) -> bool:
+        """The last gripper command (open or closed), not the measured width: fingers closed on a
+        handle are not fully shut, and the keyframe rule (and so the training data) uses the command."""
+        return bool(self._gripper_open)
+
     def joint_positions(self) -> np.ndarray:
         """Arm joint angles, (7,) rad."""
         return np.array([s[0] for s in self.client.getJointStates(self.robot, ARM_JOINT_IDS)])

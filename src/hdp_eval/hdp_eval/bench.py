@@ -1,10 +1,10 @@
 """`hdp bench controller`: NBP -> JointTrajectory latency of RK-Diffuser, full vs fast sampler.
 
-Both samplers run the same oracle episodes (evaluation.evaluate, seeds of
+Both samplers run the same oracle episodes (low_level_eval.evaluate, seeds of
 the caller's choosing, never training seeds). The latency of a segment is
 what controller_node spends between a next-best pose and a publishable
 trajectory: sampling both diffusers, refinement, timing and message
-building (trajectory.joint_trajectory). Torch runs on --threads CPU threads.
+building (hdp_controller.trajectory.joint_trajectory). Torch runs on --threads CPU threads.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from .trajectory import joint_trajectory
+from hdp_controller.trajectory import joint_trajectory
 
 
 class ToJointTrajectory:
@@ -47,11 +47,10 @@ def configure(parser) -> None:
 
 def run(args) -> int:
     import torch
-
+    from hdp_controller.policy import FAST_STEPS, load_policy
     from hdp_sim_bridge.tasks import TASKS
 
-    from .evaluation import evaluate
-    from .policy import FAST_STEPS, load_policy
+    from .low_level_eval import evaluate
     tasks = list(TASKS) if args.tasks == 'all' else [t.strip() for t in args.tasks.split(',') if t.strip()]
     if args.episodes < 1 or args.threads < 1:
         raise SystemExit('--episodes and --threads must be >= 1')

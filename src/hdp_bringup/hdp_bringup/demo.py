@@ -634,7 +634,7 @@ def json_stdout():
 
 
 def run(args) -> int:
-    from .tasks import TASKS
+    from hdp_sim_bridge.tasks import TASKS
     json_out = json_stdout() if args.json else None
     say_to = sys.stderr if args.json else sys.stdout
 

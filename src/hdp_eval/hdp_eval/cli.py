@@ -42,23 +42,11 @@ def _names(text: str, known, what: str) -> list[str]:
     return names
 
 
-def make_policy(method: str, checkpoint: str | None, sampler: str, **sampling):
-    """The planner here; the learned methods from their checkpoint (needs hdp_controller.policy);
-    ``sampling``: steps, guidance, refine_steps (see policy.load_policy)."""
-    if method == 'planner':
-        from .baselines import PlannerPolicy
-        return PlannerPolicy()
-    try:
-        from .policy import load_policy
-    except ImportError as err:
-        raise SystemExit(f'{method} needs hdp_controller.policy.load_policy, which cannot be imported: {err}')
-    return load_policy(method, checkpoint, sampler, **sampling)
-
-
 def run(args) -> int:
+    from hdp_controller.policy import load_policy
     from hdp_sim_bridge.tasks import TASKS
 
-    from .evaluation import evaluate, markdown_table
+    from .low_level_eval import evaluate, markdown_table
     if args.episodes < 1 or args.workers < 1:
         raise SystemExit('--episodes and --workers must be >= 1')
     if args.seed_start < 0:
@@ -67,7 +55,7 @@ def run(args) -> int:
     if (args.steps is not None and args.steps < 1) or args.refine_steps < 1:
         raise SystemExit('--steps and --refine-steps must be >= 1')
     sampling = dict(steps=args.steps, guidance=args.guidance, refine_steps=args.refine_steps)
-    methods = {name: make_policy(name, args.checkpoint, args.sampler, **sampling)
+    methods = {name: load_policy(name, args.checkpoint, args.sampler, **sampling)
                for name in _names(args.methods, METHODS, 'method')}
     start = time.monotonic()
     try:
@@ -98,8 +86,9 @@ def configure_plot(parser) -> None:
 
 
 def run_plot(args) -> int:
+    from hdp_controller.policy import load_policy
+
     from .figures import plot, segments_of_episode
-    from .policy import load_policy
     policy = load_policy('rkd', args.checkpoint, 'ddpm')
     segments = segments_of_episode(policy, args.task, args.seed)
     if not segments:
@@ -109,4 +98,55 @@ def run_plot(args) -> int:
         raise SystemExit(f'hdp plot low-level: --segment must be 1..{len(segments)}')
     plot(segments[chosen], f'{args.task} seed {args.seed}, segment {chosen + 1} of {len(segments)}', args.out)
     print(f'wrote {args.out}')
+    return 0
+
+
+def configure_hierarchy(parser) -> None:
+    """Closed-loop evaluation of the whole hierarchy in the sim, like the paper's Table 1."""
+    parser.add_argument('--agents', default='hdp,nbp_planner,nbp_joint',
+                        help='comma-separated: hdp (agent + RK-Diffuser), nbp_planner (agent + planner), '
+                             'nbp_joint (agent + joint diffusion); default all three')
+    parser.add_argument('--tasks', default='all', help='comma-separated task names or "all"')
+    parser.add_argument('--episodes', type=int, default=10, help='episodes per task (default 10)')
+    parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
+    parser.add_argument('--phrasings', default='seen', choices=('seen', 'heldout', 'both'),
+                        help='instructions from training phrasings, held-out ones, or both (default seen)')
+    parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent.pt ($HDP_MODELS_DIR)')
+    parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser.pt')
+    parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
+                        help='RK-Diffuser sampler (default ddim)')
+    parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
+    parser.add_argument('--threads', type=int, help='torch CPU threads')
+    parser.add_argument('--json', type=Path, help='also write the results here')
+    parser.set_defaults(func=run_hierarchy)
+
+
+def run_hierarchy(args) -> int:
+    from hdp_controller.policy import load_policy
+    from hdp_planner.agent import NextBestPoseAgent
+    from hdp_planner.planner_logic import default_checkpoint
+    from hdp_sim_bridge.tasks import TASKS
+
+    from .hierarchy_eval import AGENTS, evaluate, markdown_table
+    agents = [a.strip() for a in args.agents.split(',') if a.strip()]
+    tasks = list(TASKS) if args.tasks == 'all' else [t.strip() for t in args.tasks.split(',') if t.strip()]
+    if set(agents) - set(AGENTS) or not agents:
+        raise SystemExit(f'unknown agent(s) {sorted(set(agents) - set(AGENTS))}; agents: {", ".join(AGENTS)}')
+    if args.threads:
+        import torch
+        torch.set_num_threads(args.threads)
+    agent_path = args.agent_checkpoint or default_checkpoint()
+    agent = NextBestPoseAgent.from_checkpoint(agent_path)
+    low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler) for name in agents}
+    phrasings = ('seen', 'heldout') if args.phrasings == 'both' else (args.phrasings,)
+    try:
+        results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments)
+    except ValueError as err:
+        print(f'hdp eval hierarchy: {err}', file=sys.stderr)
+        return 1
+    print(markdown_table(results))
+    first, last = results['seeds']
+    print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
     return 0

@@ -1,7 +1,7 @@
 """HDP on a real Franka Panda (or FR3) with two RealSense D415s. UNTESTED: written against
 franka_ros2 and realsense-ros 4.x, never run here (no robot, no ROS 2 on our machines).
 
-    ros2 launch hdp_controller hdp_real_panda.launch.py robot_ip:=172.16.0.2 \
+    ros2 launch hdp_bringup hdp_real_panda.launch.py robot_ip:=172.16.0.2 \
         front_serial:=_123456789012 side_serial:=_210987654321 \
         front_extrinsics:="0.75 0.0 1.35 -0.653 0.653 -0.271 0.271" \
         side_extrinsics:="0.2 -0.6 1.2 ..."
@@ -47,7 +47,7 @@ def _nodes(context):
     arg = {name: LaunchConfiguration(name).perform(context) for name in (
         'robot_ip', 'arm_id', 'use_fake_hardware', 'front_serial', 'side_serial',
         'front_extrinsics', 'side_extrinsics')}
-    params = os.path.join(get_package_share_directory('hdp_controller'), 'config', 'hdp_real_panda.yaml')
+    params = os.path.join(get_package_share_directory('hdp_bringup'), 'config', 'hdp_real_panda.yaml')
     prefix = {'joint_prefix': arg['arm_id']}
     franka = IncludeLaunchDescription(
         PythonLaunchDescriptionSource(os.path.join(

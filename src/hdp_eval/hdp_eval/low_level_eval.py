@@ -22,14 +22,16 @@ import time
 import numpy as np
 from tqdm import tqdm
 
+from hdp_controller.low_level import Scene
+from hdp_controller.observation import CAMERA_SIZE, N_POINTS
+from hdp_motion.rotations import quat_angle
 from hdp_msgs_py.keyframes import discover_keyframes
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.collect import JOINT_STATE_EVERY
 from hdp_sim_bridge.tasks import TASKS
 from hdp_sim_bridge.world import PandaWorld
 
-from .low_level import Scene
-from .observation import CAMERA_SIZE, N_POINTS, front_camera, front_points, segment_request
+from .observation import front_camera, front_points, segment_request
 
 
 @dataclasses.dataclass
@@ -115,7 +117,7 @@ def distinct_nbps(nbps: list, position_tol: float = 0.002, angle_tol: float = np
     kept = []
     for pose, is_open in nbps:
         if kept and kept[-1][1] == is_open and np.linalg.norm(pose[:3] - kept[-1][0][:3]) < position_tol and \
-                2 * np.arccos(min(1.0, abs(float(np.dot(pose[3:], kept[-1][0][3:]))))) < angle_tol:
+                quat_angle(pose[3:], kept[-1][0][3:]) < angle_tol:
             continue
         kept.append((pose, is_open))
     return kept

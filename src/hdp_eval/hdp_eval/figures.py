@@ -1,6 +1,6 @@
 """`hdp plot low-level`: the paper's Fig. 4 for one episode.
 
-RK-Diffuser runs an oracle episode (evaluation.oracle_episode); at every
+RK-Diffuser runs an oracle episode (low_level_eval.oracle_episode); at every
 segment the planner baseline also plans from the same state (not executed).
 The figure shows one segment (by default the last: the lid's arc in
 open_box): the pose diffuser's
@@ -14,12 +14,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from hdp_controller.baselines import PlannerPolicy
 from hdp_motion.kinematics import fk_pose
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.world import PandaWorld
 
-from .baselines import PlannerPolicy
-from .evaluation import oracle_episode, world_scene
+from .low_level_eval import oracle_episode, world_scene
 from .observation import front_camera, front_points, segment_request
 
 

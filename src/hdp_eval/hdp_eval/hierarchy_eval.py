@@ -3,7 +3,7 @@
 Per segment the agent re-observes (both cameras rendered, the arm state),
 predicts a next-best pose and gripper action; the low-level method plans a
 joint trajectory to it, which runs through the experts' execution path
-(hdp_controller.evaluation), then the gripper acts. The episode ends on the
+(low_level_eval), then the gripper acts. The episode ends on the
 task's success condition, a planning failure, or the segment budget.
 
 Agents (Table 1 rows):  hdp = agent + RK-Diffuser, nbp_planner = agent +
@@ -19,14 +19,15 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from hdp_controller.evaluation import check_seed_hygiene, execute_segment, world_scene
-from hdp_controller.observation import CAMERA_SIZE, N_POINTS, front_points, segment_request
+from hdp_controller.observation import CAMERA_SIZE, N_POINTS
+from hdp_planner import language
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.cameras import default_cameras
 from hdp_sim_bridge.tasks import TASKS
 from hdp_sim_bridge.world import PandaWorld
 
-from . import language
+from .low_level_eval import check_seed_hygiene, execute_segment, world_scene
+from .observation import front_points, segment_request
 
 AGENTS = {'hdp': 'rkd', 'nbp_planner': 'planner', 'nbp_joint': 'joint'}
 PHRASINGS = ('seen', 'heldout')
@@ -69,7 +70,7 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
         started = time.perf_counter()
         nbp = agent.predict(frames, {c: cam.intrinsics for c, cam in cameras.items()},
                             {c: cam.camera_to_world for c, cam in cameras.items()}, record.instruction,
-                            (world.joint_positions(), world._gripper_open))
+                            (world.joint_positions(), world.gripper_commanded_open))
         record.predict_times.append(time.perf_counter() - started)
         request = segment_request(world, np.r_[nbp.xyz, nbp.quat], nbp.gripper_open,
                                   front_points(world, cameras['front'], N_POINTS, rng))

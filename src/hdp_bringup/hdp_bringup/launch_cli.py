@@ -1,4 +1,4 @@
-"""`hdp launch`: the HDP graph as processes, what `ros2 launch hdp_sim_bridge hdp_graph.launch.py` does.
+"""`hdp launch`: the HDP graph as processes, what `ros2 launch hdp_bringup hdp_graph.launch.py` does.
 
 sim_bridge_node, planner_node and controller_node each run in a process of their own with
 their section of config/hdp_graph.yaml. Output lines are prefixed with the node's name;
@@ -24,7 +24,7 @@ STOP_GRACE_S = 15.0            # for a node to exit after SIGINT, before SIGTERM
 def default_params_file() -> Path:
     """config/hdp_graph.yaml of this source tree (editable install), else the installed share/ copy."""
     source = Path(__file__).resolve().parents[1] / 'config' / 'hdp_graph.yaml'
-    return source if source.is_file() else Path(sys.prefix) / 'share' / 'hdp_sim_bridge' / 'config' / 'hdp_graph.yaml'
+    return source if source.is_file() else Path(sys.prefix) / 'share' / 'hdp_bringup' / 'config' / 'hdp_graph.yaml'
 
 
 def configure(parser) -> None:

@@ -1,0 +1,1 @@
+"""Bringing the HDP graph up: launch files, parameters, `hdp launch` and `hdp demo`."""

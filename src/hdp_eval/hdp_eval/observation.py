@@ -1,0 +1,40 @@
+"""What a low-level policy observes, taken from the simulator: a rendered front camera's points
+and a PandaWorld's arm state (controller_node takes the same from ROS messages)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hdp_controller.low_level import SegmentRequest
+from hdp_controller.observation import CAMERA_SIZE, N_POINTS, workspace_points
+from hdp_msgs_py import conversions
+from hdp_sim_bridge.cameras import default_cameras
+
+
+def front_camera(width: int = CAMERA_SIZE[0], height: int = CAMERA_SIZE[1]):
+    """The sim's "front" D415 at ``width`` x ``height``."""
+    return default_cameras(width, height)['front']
+
+
+def front_points(world_or_client, camera, n_points: int = N_POINTS,
+                 rng: np.random.Generator | None = None) -> np.ndarray:
+    """Render ``camera`` in a PandaWorld (or its BulletClient) -> (n_points, 3) float32 world points."""
+    client = getattr(world_or_client, 'client', world_or_client)
+    _, depth_mm = camera.render(client)
+    points = conversions.depth_to_points(depth_mm * 0.001, camera.intrinsics, camera.camera_to_world)
+    return workspace_points(points, n_points, rng)
+
+
+def segment_request(world, goal_pose, goal_gripper_open: bool, points) -> SegmentRequest:
+    """A SegmentRequest from a PandaWorld's current state towards ``goal_pose`` (7,) xyz + quat xyzw."""
+    xyz, quat = world.ee_pose()
+    return SegmentRequest(
+        q=world.joint_positions(), qd=world.joint_velocities(),
+        gripper_width=world.gripper_width(),
+        # The commanded state, not the measured width: fingers closed on a handle are not
+        # fully shut, and the keyframe rule (and so the training data) uses the command.
+        gripper_open=world.gripper_commanded_open,
+        start_pose=np.concatenate([xyz, quat]),
+        goal_pose=np.asarray(goal_pose, dtype=float).reshape(7),
+        points=np.asarray(points, dtype=np.float32),
+        goal_gripper_open=bool(goal_gripper_open))
