@@ -25,6 +25,7 @@ from pathlib import Path
 
 import rclpy
 import rclpy.node
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
@@ -152,6 +153,11 @@ def run(node_class, args=None, name: str = '') -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # rclpy's SIGINT handler can shut the context down while the executor builds its
+        # wait set ('the given context is not valid'): that is a shutdown too, not a failure.
+        if rclpy.ok():
+            raise
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

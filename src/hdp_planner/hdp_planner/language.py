@@ -18,6 +18,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from hdp_msgs_py import instructions
+
 PAD, UNK = '<pad>', '<unk>'
 MAX_WORDS = 16
 
@@ -27,35 +29,27 @@ def words(text: str) -> list[str]:
     return re.sub(r'[^a-z0-9 ]+', ' ', text.lower()).split()
 
 
-def _task(name: str):
-    from hdp_sim_bridge.tasks import TASKS
-    return TASKS[name]
-
-
 def training_phrasings(task: str) -> tuple[str, ...]:
     """The phrasing templates of ``task`` that training draws from: all but the last."""
-    return tuple(_task(task).phrasings[:-1])
+    return instructions.TASKS[task].phrasings[:-1]
 
 
 def heldout_phrasings(task: str) -> tuple[str, ...]:
     """The phrasing template of ``task`` kept out of training (its last) for the held-out evaluation."""
-    return tuple(_task(task).phrasings[-1:])
+    return instructions.TASKS[task].phrasings[-1:]
 
 
 def instruction(task: str, variation: int, phrasings, rng: np.random.Generator) -> str:
-    """An instruction for ``variation`` of ``task`` in one of ``phrasings``, drawn by the task itself."""
-    task_object = _task(task)()
-    task_object.variation = variation
-    return task_object.instruction(rng, phrasings)
+    """An instruction for ``variation`` of ``task`` in one of ``phrasings``."""
+    return instructions.instruction(task, variation, phrasings, rng)
 
 
 def task_vocabulary() -> list[str]:
     """Sorted words of every task's phrasings filled with every variation."""
-    from hdp_sim_bridge.tasks import TASKS
     vocabulary = set()
-    for cls in TASKS.values():
-        for template in cls.phrasings:
-            for variation in cls.variations:
+    for task in instructions.TASKS.values():
+        for template in task.phrasings:
+            for variation in task.variations:
                 vocabulary.update(words(template.replace('{}', variation)))
     return sorted(vocabulary)
 

@@ -15,7 +15,9 @@ import os
 import tempfile
 from pathlib import Path
 
-# Named colours for task variations (RLBench uses 20).
+from hdp_msgs_py.instructions import DRAWER_NAMES
+
+# RGB of the named colours task variations use (RLBench uses 20; hdp_msgs_py.instructions.COLOUR_NAMES).
 COLOURS = {
     'red': (1.0, 0.0, 0.0), 'maroon': (0.5, 0.0, 0.0), 'lime': (0.0, 1.0, 0.0),
     'green': (0.0, 0.5, 0.0), 'blue': (0.0, 0.0, 1.0), 'navy': (0.0, 0.0, 0.5),
@@ -90,7 +92,6 @@ def urdf_file(text: str) -> str:
 
 
 # -- articulated objects ---------------------------------------------------------------
-DRAWER_NAMES = ('bottom', 'middle', 'top')
 
 
 def cabinet(width=0.34, depth=0.30, drawer_height=0.08, legs=0.08) -> str:

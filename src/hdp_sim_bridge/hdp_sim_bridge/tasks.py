@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from hdp_msgs_py import instructions
 from hdp_msgs_py.conversions import matrix_to_quat, quat_to_matrix
 
 from . import objects
@@ -105,8 +106,7 @@ class Task:
         raise NotImplementedError
 
     def instruction(self, rng: np.random.Generator, phrasings=None) -> str:
-        template = rng.choice(list(phrasings or self.phrasings))
-        return template.format(self.variations[self.variation])
+        return instructions.instruction(self.name, self.variation, phrasings or self.phrasings, rng)
 
     def success(self, world) -> bool:
         raise NotImplementedError
@@ -159,8 +159,8 @@ class Task:
 
 class ReachTarget(Task):
     name = 'reach_target'
-    variations = tuple(objects.COLOURS)
-    phrasings = ('reach the {} target', 'touch the {} ball with the panda gripper', 'reach the {} sphere')
+    variations = instructions.TASKS[name].variations
+    phrasings = instructions.TASKS[name].phrasings
     radius = 0.03
 
     def build(self, world, rng):
@@ -195,8 +195,8 @@ class ReachTarget(Task):
 class PickUpCup(Task):
     touched_roles = ('cup',)
     name = 'pick_up_cup'
-    variations = tuple(objects.COLOURS)
-    phrasings = ('pick up the {} cup', 'lift the {} cup off the table', 'grasp the {} cup and lift it')
+    variations = instructions.TASKS[name].variations
+    phrasings = instructions.TASKS[name].phrasings
     size = (0.028, 0.10)     # radius, height: narrower than the 8 cm gripper opening
 
     def build(self, world, rng):
@@ -236,14 +236,9 @@ class PickUpCup(Task):
 class OpenDrawer(Task):
     touched_roles = ('cabinet',)
     name = 'open_drawer'
-    variations = objects.DRAWER_NAMES
-    phrasings = ('open the {} drawer', 'grip the {} handle and pull the {} drawer open',
-                 'slide the {} drawer open')
+    variations = instructions.TASKS[name].variations
+    phrasings = instructions.TASKS[name].phrasings
     distance = (0.80, 0.88)
-
-    def instruction(self, rng, phrasings=None):
-        template = rng.choice(list(phrasings or self.phrasings))
-        return template.format(*[self.variations[self.variation]] * template.count('{}'))
 
     def build(self, world, rng):
         self.load(world, 'cabinet', objects.cabinet())
@@ -299,7 +294,7 @@ class _HingedLid(Task):
 class OpenBox(_HingedLid):
     touched_roles = ('box',)
     name = 'open_box'
-    phrasings = ('open box', 'open the box lid', 'raise the lid of the box')
+    phrasings = instructions.TASKS[name].phrasings
     body_name, joint_name = 'box', 'lid'
     open_angle = math.radians(100)    # past vertical: gravity opens it the rest of the way
     distance = (0.58, 0.66)
@@ -316,7 +311,7 @@ class OpenBox(_HingedLid):
 class ToiletSeatUp(_HingedLid):
     touched_roles = ('toilet',)
     name = 'toilet_seat_up'
-    phrasings = ('lift toilet seat up', 'put the toilet seat up', 'raise the toilet seat')
+    phrasings = instructions.TASKS[name].phrasings
     body_name, joint_name = 'toilet', 'seat'
     open_angle = math.radians(96)     # past vertical: it falls back against the cistern
     distance = (0.56, 0.64)
@@ -333,7 +328,7 @@ class ToiletSeatUp(_HingedLid):
 class OpenDoor(Task):
     touched_roles = ('door',)
     name = 'open_door'
-    phrasings = ('open the door', 'use the handle to open the door', 'turn the handle and pull the door open')
+    phrasings = instructions.TASKS[name].phrasings
     distance = (0.66, 0.72)
     yaw_range = math.radians(15)
     unlock_angle = math.radians(25)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import threading
 import time
 
 import rclpy
@@ -57,12 +59,22 @@ def qos_from_args(args, publishers: list) -> QoSProfile:
     return qos_profile(reliability, durability, args.qos_depth)
 
 
+_interrupted = threading.Event()
+
+
+def interrupted() -> bool:
+    """Whether Ctrl-C (SIGINT) came while a cli_node was up."""
+    return _interrupted.is_set()
+
+
 @contextlib.contextmanager
 def cli_node():
     """A hidden node (leading underscore, as ros2cli's) living for one command.
 
-    Without rclpy's signal handlers Ctrl-C is a plain KeyboardInterrupt, raised
-    within one spin slice, instead of a shutdown that each loop has to notice.
+    Ctrl-C sets a flag that ends the current wait (spin_until) instead of raising
+    KeyboardInterrupt wherever the main thread is: raised inside rclpy's executor, it
+    could leave the node unable to shut down (seen as an `hdp topic echo` that outlived
+    Ctrl-C by 20 s). rclpy's own handlers are off for the same reason.
     """
     ros.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     try:
@@ -72,9 +84,11 @@ def cli_node():
     except BaseException:
         rclpy.try_shutdown()
         raise
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: _interrupted.set())
     try:
         yield node
     finally:
+        signal.signal(signal.SIGINT, previous)
         node.destroy_node()
         rclpy.try_shutdown()
 
@@ -86,7 +100,7 @@ def spin_until(node, done, seconds: float) -> bool:
     Ctrl-C waits for the slice to end.
     """
     end = time.monotonic() + seconds
-    while not done():
+    while not done() and not interrupted():
         left = end - time.monotonic()
         if left <= 0:
             break

@@ -11,7 +11,7 @@ from rclpy.qos import ReliabilityPolicy
 from rclpy.validate_topic_name import validate_topic_name
 
 from ..message_yaml import get_message, message_from_yaml, message_to_yaml
-from .common import (DISCOVERY_WAIT, add_discovery_args, add_qos_args, cli_node, qos_from_args,
+from .common import (DISCOVERY_WAIT, add_discovery_args, add_qos_args, cli_node, interrupted, qos_from_args,
                      qos_profile, spin_until)
 
 
@@ -86,10 +86,7 @@ def run_echo(args) -> int:
         print(error, file=sys.stderr)
         return 1
     with cli_node() as node:
-        try:
-            return _echo(node, topic, args)
-        except KeyboardInterrupt:
-            return 0    # Ctrl-C is how an endless echo ends
+        return _echo(node, topic, args)     # Ctrl-C (interrupted()) is how an endless echo ends: 0
 
 
 def _echo(node, topic: str, args) -> int:
@@ -119,7 +116,8 @@ def _echo(node, topic: str, args) -> int:
         print('---', flush=True)
 
     node.create_subscription(msg_type, topic, on_message, qos)
-    if args.timeout is not None and not spin_until(node, lambda: received > 0, args.timeout):
+    if args.timeout is not None and not spin_until(node, lambda: received > 0, args.timeout) \
+            and not interrupted():
         print(f'no message on {topic} within {args.timeout} s', file=sys.stderr)
         return 1
     spin_until(node, lambda: args.once and received > 0, math.inf)
@@ -148,14 +146,14 @@ def run_pub(args) -> int:
                   f'within {args.max_wait} s; publishing anyway', file=sys.stderr)
         text = message_to_yaml(msg).strip().replace('\n', ' ')
         sent = 0
-        while True:
+        while not interrupted():         # Ctrl-C ends an endless pub
             pub.publish(msg)
             sent += 1
             print(f'publishing #{sent}: {text}', flush=True)
             if times and sent >= times:
                 break
             spin_until(node, lambda: False, 1.0 / args.rate)
-        if qos.reliability == ReliabilityPolicy.RELIABLE:
+        if qos.reliability == ReliabilityPolicy.RELIABLE and not interrupted():
             # a reliable sample is resent until acknowledged: stay up until it is
             pub.wait_for_all_acked(Duration(seconds=args.max_wait))
     return 0

@@ -1,0 +1,46 @@
+"""What each task's instructions say, as data: its variations and phrasing templates, and how
+an instruction is drawn. The simulator's tasks and the planner's language code both read it,
+so the planner knows the tasks' words without the simulator.
+
+A template's ``{}`` are filled with the variation's name (every one of them, so 'grip the {}
+handle and pull the {} drawer open' names one drawer twice). The last phrasing of every task
+is held out of training.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+# Numbered in this order: variation i of a coloured task is COLOUR_NAMES[i].
+COLOUR_NAMES = ('red', 'maroon', 'lime', 'green', 'blue', 'navy', 'yellow', 'cyan', 'magenta', 'silver',
+                'gray', 'orange', 'olive', 'purple', 'teal', 'azure', 'violet', 'rose', 'black', 'white')
+DRAWER_NAMES = ('bottom', 'middle', 'top')
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskLanguage:
+    variations: tuple[str, ...]
+    phrasings: tuple[str, ...]
+
+
+TASKS = {
+    'reach_target': TaskLanguage(COLOUR_NAMES, (
+        'reach the {} target', 'touch the {} ball with the panda gripper', 'reach the {} sphere')),
+    'pick_up_cup': TaskLanguage(COLOUR_NAMES, (
+        'pick up the {} cup', 'lift the {} cup off the table', 'grasp the {} cup and lift it')),
+    'open_drawer': TaskLanguage(DRAWER_NAMES, (
+        'open the {} drawer', 'grip the {} handle and pull the {} drawer open', 'slide the {} drawer open')),
+    'open_box': TaskLanguage(('',), ('open box', 'open the box lid', 'raise the lid of the box')),
+    'toilet_seat_up': TaskLanguage(('',), (
+        'lift toilet seat up', 'put the toilet seat up', 'raise the toilet seat')),
+    'open_door': TaskLanguage(('',), (
+        'open the door', 'use the handle to open the door', 'turn the handle and pull the door open')),
+}
+
+
+def instruction(task: str, variation: int, phrasings, rng: np.random.Generator) -> str:
+    """An instruction for ``variation`` of ``task`` in one of ``phrasings``, drawn with ``rng``."""
+    template = rng.choice(list(phrasings))
+    return template.format(*[TASKS[task].variations[variation]] * template.count('{}'))
