@@ -32,8 +32,10 @@ from launch.launch_description_sources import PythonLaunchDescriptionSource
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from hdp_motion.panda import ROBOT_BASE
+
 CAMERAS = ('front', 'side')
-ROBOT_BASE_IN_WORLD = '0 0 0.75 0 0 0 1'      # hdp_msgs_py / kinematics ROBOT_BASE
+ROBOT_BASE_IN_WORLD = ' '.join(str(v) for v in (*ROBOT_BASE, 0, 0, 0, 1))    # x y z qx qy qz qw, facing +x
 
 
 def _static_transform(parent: str, child: str, pose: str) -> Node:
