@@ -26,6 +26,18 @@ def test_robot_side_nodes_load_no_simulator_and_no_planner(load):
     assert json.loads(result.stdout.splitlines()[-1]) == []
 
 
+def test_the_planning_baselines_plan_on_the_robot_without_the_simulator():
+    """controller_node with method planner plans in PyBullet with OMPL, but in a kinematic scene of
+    its own: the simulator package stays unloaded."""
+    probe = ('import json, sys; import numpy as np; from hdp_controller.policy import load_policy; '
+             'from hdp_controller.baselines import standalone_scene; standalone_scene(); '
+             'load_policy("planner"); print(json.dumps(sorted(m for m in ("pybullet", "ompl", "hdp_sim_bridge") '
+             'if m in sys.modules)))')
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout.splitlines()[-1]) == ['ompl', 'pybullet']
+
+
 def _hdp_imports(package: str) -> set[str]:
     """Top-level hdp_* packages that ``package``'s code imports (module level or inside functions)."""
     found = set()

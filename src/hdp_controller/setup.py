@@ -17,7 +17,6 @@ setup(
         'setuptools',
         'hdp_motion',
         'hdp_msgs_py',
-        'hdp_sim_bridge',
         'numpy',
         'pyyaml',
         'tqdm',

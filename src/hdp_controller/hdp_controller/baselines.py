@@ -19,20 +19,19 @@ import numpy as np
 
 from hdp_motion import panda, planning
 from hdp_motion.rotations import quat_angle
-from hdp_sim_bridge.world import PandaWorld
+from hdp_msgs_py import workspace
 
 from .low_level import PlanResult, Scene, SegmentRequest
 
 
 @functools.cache
-def _standalone_world() -> PandaWorld:
-    return PandaWorld()         # kept alive by the cache: its client disconnects when collected
-
-
 def standalone_scene() -> Scene:
-    """A per-process PyBullet DIRECT scene with the Panda and its table as the only obstacle."""
-    world = _standalone_world()
-    return Scene(client=world.client_id, robot=world.robot, obstacles=(world.table,))
+    """A per-process kinematic PyBullet scene: the Panda and the table it stands on, the only
+    obstacle a planner knows of without perception."""
+    table = ((*workspace.TABLE_CENTER_XY, workspace.TABLE_TOP_Z - workspace.TABLE_HALF_EXTENTS[2]),
+             workspace.TABLE_HALF_EXTENTS)
+    client, robot, obstacles = planning.kinematic_scene([table])
+    return Scene(client=client, robot=robot, obstacles=obstacles)
 
 
 def _free_attached_body(scene: Scene) -> int | None:

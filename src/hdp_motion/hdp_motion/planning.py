@@ -25,12 +25,13 @@ import numpy as np
 import pybullet as p
 from ompl import base as ob, geometric as og, util as ou
 
-from .panda import LOWER, UPPER
+from .panda import FINGER_MAX, HOME, LOWER, ROBOT_BASE, UPPER
 from .rotations import quat_angle
 
 # pybullet_data's franka_panda/panda.urdf: joint indices of panda_joint1..7, link index of
 # panda_grasptarget (panda.EE_LINK_ID)
 ARM_JOINT_IDS = tuple(range(7))
+FINGER_JOINT_IDS = (9, 10)
 EE_LINK_ID = 11
 # The rigid hand: panda_link8, panda_hand, the grasp target, and the fingers.
 # A grasped body touches these, so they never collide with it.
@@ -111,7 +112,7 @@ def solve_ik(client, robot, xyz, quat_xyzw, q_seed, rounds=20,
     quat = np.asarray(quat_xyzw, dtype=float) / np.linalg.norm(quat_xyzw)
     # calculateInverseKinematics takes limits for every movable joint: the
     # arm's, then the two fingers', which stay where they are.
-    fingers = [s[0] for s in p.getJointStates(robot, (9, 10), physicsClientId=client)]
+    fingers = [s[0] for s in p.getJointStates(robot, FINGER_JOINT_IDS, physicsClientId=client)]
     lower = [*LOWER, 0.0, 0.0]
     upper = [*UPPER, 0.04, 0.04]
     ranges = [hi - lo for lo, hi in zip(lower, upper)]
@@ -134,6 +135,24 @@ def solve_ik(client, robot, xyz, quat_xyzw, q_seed, rounds=20,
                     and quat_angle(orn, quat) < rot_tol):
                 return q
     return None
+
+
+def kinematic_scene(boxes=()) -> tuple[int, int, tuple[int, ...]]:
+    """(client id, Panda body id, obstacle body ids) of a PyBullet DIRECT client holding the Panda
+    at ROBOT_BASE (arm at HOME, fingers open) and static ``boxes`` ((centre xyz, half extents)
+    pairs, m): a scene to plan in where no simulator runs, such as on the robot."""
+    import pybullet_data
+    client = p.connect(p.DIRECT)
+    p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=client)
+    robot = p.loadURDF('franka_panda/panda.urdf', ROBOT_BASE, useFixedBase=True, physicsClientId=client)
+    _set_arm(client, robot, HOME)
+    for joint in FINGER_JOINT_IDS:
+        p.resetJointState(robot, joint, FINGER_MAX, physicsClientId=client)
+    obstacles = tuple(
+        p.createMultiBody(0.0, p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=client),
+                          basePosition=centre, physicsClientId=client)
+        for centre, half in boxes)
+    return client, robot, obstacles
 
 
 # ----------------------------------------------------------------- collisions

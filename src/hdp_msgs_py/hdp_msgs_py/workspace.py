@@ -11,6 +11,10 @@ import numpy as np
 from hdp_motion.panda import ROBOT_BASE
 
 TABLE_TOP_Z = ROBOT_BASE[2]              # m: the arm stands on the table top
+# The table, a solid block from the floor up (x -0.2..0.9, y -0.6..0.6): what the simulator
+# builds and what a planner without perception avoids.
+TABLE_CENTER_XY = (0.35, 0.0)            # m
+TABLE_HALF_EXTENTS = (0.55, 0.6, TABLE_TOP_Z / 2)
 # [[x_min, y_min, z_min], [x_max, y_max, z_max]], m
 WORKSPACE = np.array([[0.2, -0.4, TABLE_TOP_Z], [0.8, 0.4, TABLE_TOP_Z + 0.6]])
 # Points closer than this to the table top are the table itself.

@@ -32,17 +32,13 @@ from pybullet_utils.bullet_client import BulletClient
 
 from hdp_motion import panda
 from hdp_motion.panda import ROBOT_BASE
-from hdp_motion.planning import ARM_JOINT_IDS, EE_LINK_ID
-from hdp_msgs_py.workspace import TABLE_TOP_Z, WORKSPACE  # noqa: F401  (re-exported)
+from hdp_motion.planning import ARM_JOINT_IDS, EE_LINK_ID, FINGER_JOINT_IDS
+from hdp_msgs_py.workspace import TABLE_CENTER_XY, TABLE_HALF_EXTENTS, TABLE_TOP_Z, WORKSPACE  # noqa: F401
 
 TIME_STEP = 1.0 / 240.0           # s
 GRAVITY = -9.81                   # m/s^2
 
-TABLE_CENTER_XY = (0.35, 0.0)     # m
-# m; a solid block from the floor up (no legs to see between): x -0.2..0.9, y -0.6..0.6.
-TABLE_HALF_EXTENTS = (0.55, 0.6, TABLE_TOP_Z / 2)
 
-FINGER_JOINT_IDS = (9, 10)
 HAND_LINK = 8
 
 ARM_FORCES = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])   # Nm, the Panda's limits
