@@ -76,7 +76,7 @@ def load(path, expected_kind: str, version: int, fields: dict | None = None) -> 
     size = path.stat().st_size
     if size > MAX_BYTES:
         raise CheckpointError(f'{path}: {size} bytes is over the {MAX_BYTES}-byte checkpoint limit')
-    payload = _torch_load(path)
+    payload = _read_weights_only(path)
     found_kind, found_version = _kind_and_version(payload)
     # reprlib: what a file declares is shown short and on one line, whatever it holds.
     if found_kind != expected_kind:
@@ -110,7 +110,7 @@ def load_weights(path, model, weights: dict) -> None:
     model.load_state_dict(weights)
 
 
-def _torch_load(path: Path):
+def _read_weights_only(path: Path):
     """torch.load(weights_only=True) of ``path``, its failures as one-line CheckpointErrors."""
     import torch
     try:
