@@ -128,10 +128,7 @@ def run_hierarchy(args) -> int:
     from hdp_sim_bridge.tasks import TASKS
 
     from .hierarchy_eval import AGENTS, evaluate, markdown_table
-    agents = [a.strip() for a in args.agents.split(',') if a.strip()]
-    tasks = list(TASKS) if args.tasks == 'all' else [t.strip() for t in args.tasks.split(',') if t.strip()]
-    if set(agents) - set(AGENTS) or not agents:
-        raise SystemExit(f'unknown agent(s) {sorted(set(agents) - set(AGENTS))}; agents: {", ".join(AGENTS)}')
+    agents, tasks = _names(args.agents, AGENTS, 'agent'), _names(args.tasks, TASKS, 'task')
     if args.threads:
         import torch
         torch.set_num_threads(args.threads)

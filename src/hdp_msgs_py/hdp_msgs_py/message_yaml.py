@@ -9,6 +9,8 @@ import numpy as np
 from rosidl_parser.definition import AbstractNestedType, NamespacedType
 import yaml
 
+from .message import type_name_of
+
 
 def get_message(type_name: str) -> type:
     """The rclpy class for 'pkg/msg/Type' (or 'pkg/Type'); ValueError if there is none."""
@@ -27,12 +29,6 @@ def get_message(type_name: str) -> type:
     return cls
 
 
-def _type_name(msg) -> str:
-    """'std_msgs/msg/String' for a message or its class."""
-    cls = msg if isinstance(msg, type) else type(msg)
-    return f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
-
-
 def _class_of(slot: NamespacedType) -> type:
     return getattr(importlib.import_module('.'.join(slot.namespaces)), slot.name)
 
@@ -40,17 +36,17 @@ def _class_of(slot: NamespacedType) -> type:
 def fill_message(msg, values: dict):
     """Set fields from a dict, recursing into nested messages; ValueError on a bad key or value."""
     if not isinstance(values, dict):
-        raise ValueError(f'{_type_name(msg)} needs a mapping of field values, got {values!r}')
+        raise ValueError(f'{type_name_of(type(msg))} needs a mapping of field values, got {values!r}')
     slots = dict(zip(msg.get_fields_and_field_types(), msg.SLOT_TYPES))
     for key, value in values.items():
         slot = slots.get(key)
         if slot is None:
-            raise ValueError(f"{_type_name(msg)} has no field '{key}'; fields: {', '.join(slots)}")
+            raise ValueError(f"{type_name_of(type(msg))} has no field '{key}'; fields: {', '.join(slots)}")
         try:
             setattr(msg, key, _field_value(getattr(msg, key), slot, value))
         except (AssertionError, TypeError, OverflowError) as err:
             # rclpy's setters report a wrong type by assertion (with check_fields)
-            raise ValueError(f"{_type_name(msg)}.{key}: {str(err) or 'wrong type'}") from None
+            raise ValueError(f"{type_name_of(type(msg))}.{key}: {str(err) or 'wrong type'}") from None
     return msg
 
 
