@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from hdp_bringup import demo
+from hdp_bringup.demo import cli, cpu, episode_log, figures, media
 
 
 def _hdp(*args) -> list[str]:
@@ -29,18 +29,18 @@ def _env(ros_domain) -> dict:
 # --- domain -------------------------------------------------------------------------------------
 
 def test_domain_comes_from_the_environment_else_is_picked_in_the_safe_range():
-    assert demo.pick_domain({'ROS_DOMAIN_ID': '42'}, random.Random(0)) == (42, False)
-    assert demo.pick_domain({'ROS_DOMAIN_ID': '0'}, random.Random(0)) == (0, False)
-    picked = {demo.pick_domain({'ROS_DOMAIN_ID': ' '}, random.Random(seed)) for seed in range(50)}
-    assert all(p and d in demo.SAFE_DOMAINS for d, p in picked) and len(picked) > 10
+    assert cli.pick_domain({'ROS_DOMAIN_ID': '42'}, random.Random(0)) == (42, False)
+    assert cli.pick_domain({'ROS_DOMAIN_ID': '0'}, random.Random(0)) == (0, False)
+    picked = {cli.pick_domain({'ROS_DOMAIN_ID': ' '}, random.Random(seed)) for seed in range(50)}
+    assert all(p and d in cli.SAFE_DOMAINS for d, p in picked) and len(picked) > 10
     with pytest.raises(ValueError, match='0..232'):
-        demo.pick_domain({'ROS_DOMAIN_ID': '300'}, random.Random(0))
+        cli.pick_domain({'ROS_DOMAIN_ID': '300'}, random.Random(0))
 
 
 # --- segment bookkeeping --------------------------------------------------------------------------
 
 def test_segment_times_split_into_observe_predict_controller_execution():
-    log = demo.EpisodeLog(start=100.0)
+    log = episode_log.EpisodeLog(start=100.0)
     log.gripper_goal(key=7, is_open=False)                 # the planner sends the goal first
     first = log.nbp(101.5, key=7, xyz=(0.5, 0.1, 0.9))
     assert log.trajectory(102.25, points=40, duration_s=1.6) is first
@@ -61,30 +61,15 @@ def test_segment_times_split_into_observe_predict_controller_execution():
 
 
 def test_a_refused_segment_has_controller_time_and_no_execution():
-    log = demo.EpisodeLog(start=0.0)
+    log = episode_log.EpisodeLog(start=0.0)
     segment = log.nbp(2.0, key=1, xyz=(0.0, 0.0, 0.0))
     assert log.open_segment is segment
     log.result(2.5, key=1, outcome='failed: outside the workspace')
     assert (segment.controller_s, segment.execution_s, segment.gripper) == (0.5, None, None)
     assert log.open_segment is None and log.trajectory(3.0, 10, 1.0) is None
-    line = demo.segment_line(segment)
+    line = episode_log.segment_line(segment)
     assert line.startswith('segment 1: NBP (0.000, 0.000, 0.000) gripper unchanged -> failed: outside')
     assert 'controller 0.50 s, execution -' in line
-
-
-@pytest.mark.parametrize('line, verdict', [
-    ("planner_node: instruction 'open the drawer': up to 8 segments", 'started'),
-    ("planner_node: instruction 'open the drawer': task succeeded after 2 segments", 'succeeded'),
-    ("planner_node: instruction 'open the drawer': segment 1 failed", 'ended'),
-    ("planner_node: instruction 'open the drawer': 8 segments done without success", 'ended'),
-    ('planner_node: refused instruction: no word of ...', 'refused'),
-    ("planner_node: instruction 'open the box': task succeeded after 1 segments", None),
-    ("planner_node: instruction 'open the drawer' queued: it starts when segment 1 ends", None),
-    ("controller_node: segment 1.000: done", None),
-])
-def test_planner_outcome_reads_the_status_lines_about_our_instruction(line, verdict):
-    outcome = demo.planner_outcome(line, 'open the drawer')
-    assert (outcome[0] if outcome else None) == verdict
 
 
 # --- CPU --------------------------------------------------------------------------------------------
@@ -94,7 +79,7 @@ def _stat(pid, ppid, utime, stime, cutime=0, cstime=0, comm='python3'):
 
 
 def test_parse_stat_counts_fields_after_the_last_parenthesis():
-    assert demo.parse_stat(_stat(9, 3, 250, 50, 7, 3, comm='odd) name (x')) == (3, 310)
+    assert cpu.parse_stat(_stat(9, 3, 250, 50, 7, 3, comm='odd) name (x')) == (3, 310)
 
 
 def test_parse_stat_agrees_with_os_times():
@@ -102,7 +87,7 @@ def test_parse_stat_agrees_with_os_times():
     while time.process_time() < end:
         pass
     ticks = os.sysconf('SC_CLK_TCK')
-    ppid, total = demo.parse_stat(Path(f'/proc/{os.getpid()}/stat').read_text())
+    ppid, total = cpu.parse_stat(Path(f'/proc/{os.getpid()}/stat').read_text())
     times = os.times()
     assert ppid == os.getppid()
     assert abs(total - (times.user + times.system + times.children_user + times.children_system) * ticks) <= 3
@@ -114,12 +99,12 @@ def test_cpu_of_a_node_includes_its_live_descendants():
     # 11 exited and was waited for: its 40 ticks are in 10's cutime now; its child 12 went to init.
     after = {10: _stat(10, 1, 200, 40, 40, 0), 12: _stat(12, 1, 5, 5), 13: _stat(13, 1, 999, 0),
              20: _stat(20, 1, 150, 0)}
-    assert demo.tree_ticks(10, before) == 100 + 20 + 30 + 10 and demo.tree_ticks(10, after) == 280
-    assert demo.tree_ticks(30, before) is None
+    assert cpu.tree_ticks(10, before) == 100 + 20 + 30 + 10 and cpu.tree_ticks(10, after) == 280
+    assert cpu.tree_ticks(30, before) is None
     pids = {'planner_node': 10, 'controller_node': 20, 'gone': 30}
-    a, b = (demo.cpu_seconds(pids, stats, ticks_per_s=100) for stats in (before, after))
+    a, b = (cpu.cpu_seconds(pids, stats, ticks_per_s=100) for stats in (before, after))
     assert a == {'planner_node': 1.6, 'controller_node': 0.5}
-    usage = demo.cpu_usage(a, b, wall_s=2.0)
+    usage = cpu.cpu_usage(a, b, wall_s=2.0)
     assert usage == {'planner_node': {'cpu_s': 1.2, 'cpu_percent': 60.0},
                      'controller_node': {'cpu_s': 1.0, 'cpu_percent': 50.0}}
 
@@ -129,29 +114,29 @@ def test_read_stats_skips_what_is_not_a_process(tmp_path):
     (tmp_path / '17' / 'stat').write_text(_stat(17, 1, 1, 1))
     (tmp_path / '18').mkdir()                          # exited between listing and reading
     (tmp_path / 'self').mkdir()
-    assert demo.read_stats(tmp_path) == {17: _stat(17, 1, 1, 1)}
+    assert cpu.read_stats(tmp_path) == {17: _stat(17, 1, 1, 1)}
 
 
 # --- figures ----------------------------------------------------------------------------------------
 
 def _record(success, segment_times, cpu_s, wall_s=10.0, success_s=8.0):
     return {'success': success, 'success_s': success_s if success else None, 'wall_s': wall_s,
-            'segments': [dict(zip(demo.STAGES, t)) for t in segment_times],
-            'cpu': {name: {'cpu_s': c} for name, c in zip(demo.NODES, cpu_s)}}
+            'segments': [dict(zip(episode_log.STAGES, t)) for t in segment_times],
+            'cpu': {name: {'cpu_s': c} for name, c in zip(cli.NODES, cpu_s)}}
 
 
 def test_stats_and_figures_over_episodes():
-    assert demo.stats([3.0, 1.0, 2.0, None]) == {'n': 3, 'p50': 2.0, 'p95': 2.9, 'mean': 2.0, 'max': 3.0}
-    assert demo.stats([])['p50'] is None
+    assert figures.stats([3.0, 1.0, 2.0, None]) == {'n': 3, 'p50': 2.0, 'p95': 2.9, 'mean': 2.0, 'max': 3.0}
+    assert figures.stats([])['p50'] is None
     episodes = [_record(True, [(1.0, 0.5, 3.0), (2.0, 0.7, None)], (5.0, 1.0, 2.0)),
                 _record(False, [(3.0, 0.9, 4.0)], (5.0, 1.0, 2.0), wall_s=30.0)]
-    figs = demo.figures(episodes)
+    figs = figures.figures(episodes)
     assert figs['observe_predict_s']['n'] == 3 and figs['observe_predict_s']['p50'] == 2.0
     assert figs['execution_s']['n'] == 2 and figs['execution_s']['max'] == 4.0
-    assert figs['episode_s'] == demo.stats([8.0])                  # successful episodes only
+    assert figs['episode_s'] == figures.stats([8.0])                  # successful episodes only
     assert figs['cpu']['sim_bridge_node'] == {'cpu_s': 10.0, 'cpu_percent': 25.0}
     assert (figs['episodes'], figs['succeeded']) == (2, 1)
-    table = demo.format_figures(figs)
+    table = figures.format_figures(figs)
     assert '1 of 2 episodes succeeded, 3 segments' in table
     assert '| observe + predict (result -> NBP) | 3 | 2.00 | 2.90 | 2.00 | 3.00 |' in table
     assert '| sim_bridge_node | 10.0 | 25 |' in table
@@ -160,19 +145,19 @@ def test_stats_and_figures_over_episodes():
 # --- writers ----------------------------------------------------------------------------------------
 
 def test_gif_replays_sim_time_faster_and_is_a_valid_animation(tmp_path):
-    assert demo.gif_durations_ms([10.0, 10.5, 11.0], speedup=2.0, last_ms=900) == [250, 250, 900]
+    assert media.gif_durations_ms([10.0, 10.5, 11.0], speedup=2.0, last_ms=900) == [250, 250, 900]
     frames = [np.full((48, 64, 3), 40 * i, np.uint8) for i in range(4)]
-    captioned = demo.caption(frames[3], 'reach_target t=1.0s')
+    captioned = media.caption(frames[3], 'reach_target t=1.0s')
     band = captioned[:18]
     assert np.median(band) < 120 / 2 and band.max() > 200 and np.all(captioned[18:] == 120)   # dark band, white text
     assert np.all(frames[3] == 120)                                                        # the frame is not changed
-    demo.write_gif(frames, [100, 100, 100, 500], tmp_path / 'a.gif')
+    media.write_gif(frames, [100, 100, 100, 500], tmp_path / 'a.gif')
     with Image.open(tmp_path / 'a.gif') as gif:
         assert gif.format == 'GIF' and gif.n_frames == 4 and gif.size == (64, 48)
         gif.seek(3)
         assert np.asarray(gif.convert('RGB'))[40, 10].mean() == pytest.approx(120, abs=3)
     with pytest.raises(ValueError, match='no frames'):
-        demo.write_gif([], [], tmp_path / 'b.gif')
+        media.write_gif([], [], tmp_path / 'b.gif')
 
 
 def test_ee_positions_are_the_sims_own_forward_kinematics():
@@ -184,16 +169,16 @@ def test_ee_positions_are_the_sims_own_forward_kinematics():
         for row in q:
             world.reset_arm(row)
             expected.append(world.ee_pose()[0])
-    np.testing.assert_allclose(demo.ee_positions(q), expected, atol=1e-6)
+    np.testing.assert_allclose(media.ee_positions(q), expected, atol=1e-6)
 
 
 def test_wall_to_sim_maps_events_through_joint_state_samples():
-    np.testing.assert_allclose(demo.wall_to_sim([0.5, 1.5, 9.0], [0.0, 1.0, 2.0], [5.0, 5.0, 6.0]), [5.0, 5.5, 6.0])
+    np.testing.assert_allclose(media.wall_to_sim([0.5, 1.5, 9.0], [0.0, 1.0, 2.0], [5.0, 5.0, 6.0]), [5.0, 5.5, 6.0])
 
 
 def test_trajectory_plot_is_a_png(tmp_path):
     from hdp_motion import panda
-    log = demo.EpisodeLog(start=0.0)
+    log = episode_log.EpisodeLog(start=0.0)
     wall = np.linspace(0.1, 6.0, 120)
     q = np.tile(panda.HOME, (120, 1))              # at home, then turning joint 1
     q[60:, 0] = np.linspace(0.0, 0.8, 60)
@@ -201,7 +186,7 @@ def test_trajectory_plot_is_a_png(tmp_path):
     log.gripper_goal(1, True)
     log.trajectory(1.5, 50, 2.0)
     log.result(4.0, 1, 'done')
-    demo.write_plot(wall, wall * 0.9 + 3.0, q, [segment], 3.5, 'test', tmp_path / 'p.png')
+    media.write_plot(wall, wall * 0.9 + 3.0, q, [segment], 3.5, 'test', tmp_path / 'p.png')
     with Image.open(tmp_path / 'p.png') as png:
         assert png.format == 'PNG' and png.size == (1200, 480)
         pixels = np.asarray(png.convert('RGB'))
@@ -221,18 +206,18 @@ def test_unknown_task_exits_2_before_starting_anything(tmp_path, ros_domain):
 def _parse(*args):
     import argparse
     parser = argparse.ArgumentParser()
-    demo.configure(parser)
+    cli.configure(parser)
     return parser.parse_args(args)
 
 
 def test_argument_problems_are_found_before_anything_starts(tmp_path):
     tasks = ('reach_target', 'open_drawer')
-    assert demo.argument_problem(_parse('--task', 'open_drawer'), tasks) is None
+    assert cli.argument_problem(_parse('--task', 'open_drawer'), tasks) is None
     for args, problem in ((('--task', 'open_door'), "unknown task 'open_door'; tasks: reach_target, open_drawer"),
                           (('--episodes', '0'), '--episodes >= 1'), (('--seed', '-1'), '--seed must be >= 0'),
                           (('--timeout', '0'), '--timeout > 0'), (('--instruction', '  '), '--instruction is empty'),
                           (('--params-file', str(tmp_path / 'no.yaml')), 'no parameter file')):
-        assert problem in demo.argument_problem(_parse('--task', 'reach_target', *args), tasks), args
+        assert problem in cli.argument_problem(_parse('--task', 'reach_target', *args), tasks), args
     with pytest.raises(SystemExit) as exit_:
         _parse('--task', 'reach_target', '--method', 'teleport')
     assert exit_.value.code == 2
@@ -284,12 +269,12 @@ def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     assert episode['success'] and episode['seed'] == 1000 and episode['success_s'] > 0
     assert f"episode reach_target seed 1000 variation {episode['variation']}: {episode['instruction']!r}" in text
     for segment in episode['segments']:
-        assert all(segment[stage] > 0 for stage in demo.STAGES), segment
-    assert set(episode['cpu']) == set(demo.NODES) and all(c['cpu_s'] > 0 for c in episode['cpu'].values())
+        assert all(segment[stage] > 0 for stage in episode_log.STAGES), segment
+    assert set(episode['cpu']) == set(cli.NODES) and all(c['cpu_s'] > 0 for c in episode['cpu'].values())
     assert summary['figures']['episode_s']['n'] == 1
     with Image.open(out / episode['gif']) as gif:
-        assert gif.n_frames >= 3 and gif.size == (demo.GIF_WIDTH, 240)
+        assert gif.n_frames >= 3 and gif.size == (media.GIF_WIDTH, 240)
     with Image.open(out / episode['plot']) as png:
         assert png.format == 'PNG'
     assert (out / episode['plot']).stat().st_size > 30_000
-    assert all((out / 'logs' / f'{name}.log').is_file() for name in demo.NODES)
+    assert all((out / 'logs' / f'{name}.log').is_file() for name in cli.NODES)

@@ -22,6 +22,7 @@ import torch
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.msg import Header, JointState, TFMessage, Time, TransformStamped
+from hdp_msgs_py.outcome import Outcome
 from hdp_planner.agent import NextBestPose
 from hdp_planner.planner_logic import (MAX_INSTRUCTION_CHARS, InstructionRefused, Observations, PlannerLoop,
                                        validate_instruction)
@@ -93,6 +94,12 @@ def _texts(outputs, kind=None):
     return [msg for k, msg in outputs if k in ((kind,) if kind else ('info', 'error'))]
 
 
+def _outcomes(outputs) -> list[tuple]:
+    """(instruction, result, segments) of each outcome, after a JSON round trip as on the wire."""
+    return [(o.instruction, o.result, o.segments) for o in
+            (Outcome.from_json(msg.to_json()) for k, msg in outputs if k == 'outcome')]
+
+
 def test_a_segment_sends_gripper_goal_and_nbp_with_one_stamp_then_waits_for_fresh_frames():
     loop = _loop()
     feed_frames(loop.observations, 1.0)
@@ -133,6 +140,7 @@ def test_the_loop_ends_on_success_reported_after_the_segment():
     loop.on_success(True)
     out = loop.step(1.1, 3)
     assert _texts(out) == ["instruction 'open the drawer': task succeeded after 1 segments"]
+    assert _outcomes(out) == [('open the drawer', 'succeeded', 1)]
     assert loop.instruction is None and loop.step(1.2, 4) == []
 
 
@@ -143,8 +151,9 @@ def test_max_segments_ends_the_loop_on_a_robot_without_success_reports():
         feed_frames(loop.observations, 1.0 + i)
         stamp = loop.step(0.1 + i, 10 + i)[1].msg.header.stamp
         loop.on_result(_result(stamp), 0.5 + i)
-    assert _texts(loop.step(3.0, 20), 'info') == [
-        "instruction 'pick up the red cup': 2 segments done (this robot reports no success)"]
+    out = loop.step(3.0, 20)
+    assert _texts(out, 'info') == ["instruction 'pick up the red cup': 2 segments done (this robot reports no success)"]
+    assert _outcomes(out) == [('pick up the red cup', 'ended', 2)]
 
 
 def test_camera_timeout_stops_the_instruction_and_names_the_camera():
@@ -155,6 +164,7 @@ def test_camera_timeout_stops_the_instruction_and_names_the_camera():
     out = loop.step(12.1, 2)
     assert _texts(out, 'error') == ["instruction 'open the drawer': camera side timed out after 2.0 s "
                                     "(no fresh side camera colour, side camera depth, side camera_info)"]
+    assert _outcomes(out) == [('open the drawer', 'failed', 0)]
     assert loop.instruction is None and loop.agent.calls == []
 
 
@@ -216,6 +226,7 @@ def test_a_missing_result_lets_a_queued_instruction_start():
     assert _texts(out) == ['segment 1: no result from the controller within 10.0 s (is controller_node running?)',
                            "instruction 'open the drawer': replaced by a new instruction",
                            "instruction 'pick up the cup': up to 3 segments"]
+    assert _outcomes(out) == [('open the drawer', 'replaced', 1)]
 
 
 def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_the_result():
@@ -228,14 +239,32 @@ def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_th
     assert _texts(out) == ['segment 1: pose (0.500, 0.100, 0.900) gripper close -> failed: no path in 0.9 s',
                            "instruction 'open the drawer': segment 1 failed",
                            "instruction 'pick up the cup': up to 3 segments"]
+    assert _outcomes(out) == [('open the drawer', 'failed', 1)]
     assert loop.instruction == 'pick up the cup' and loop.queued is None
 
 
 def test_a_refused_instruction_leaves_the_running_one_alone():
     loop = _loop()
     loop.on_instruction('open the drawer', 0.0)
-    assert _texts(loop.on_instruction('', 0.1), 'error') == ['refused instruction: the instruction is empty']
+    out = loop.on_instruction('  fly to the moon ', 0.1)
+    assert _texts(out, 'error')[0].startswith("refused instruction: no word of 'fly to the moon'")
+    assert _outcomes(out) == [('fly to the moon', 'refused', 0)]
     assert loop.instruction == 'open the drawer'
+
+
+def test_an_outcome_is_refused_unless_well_formed():
+    good = Outcome('open the drawer', 'succeeded', 'task succeeded after 2 segments', 2)
+    assert Outcome.from_json(good.to_json()) == good
+    assert len(Outcome.from_json(Outcome('x' * 5000, 'refused', 'too long', 0).to_json()).instruction) == 1024
+    with pytest.raises(ValueError, match='unknown outcome result'):
+        Outcome('open the drawer', 'won', '', 1).to_json()
+    for text in ('not json', '[]', '{"instruction": "a"}',
+                 '{"instruction": "a", "result": "won", "reason": "", "segments": 1}',
+                 '{"instruction": "a", "result": "failed", "reason": "", "segments": -1}',
+                 '{"instruction": 3, "result": "failed", "reason": "", "segments": 1}',
+                 '{"instruction": "a", "result": "failed", "reason": "", "segments": 1, "extra": 0}'):
+        with pytest.raises(ValueError):
+            Outcome.from_json(text)
 
 
 # --- processes ---------------------------------------------------------------------------------
@@ -292,6 +321,10 @@ def test_planner_node_refuses_bad_instructions_and_reports_a_camera_timeout(ros_
     assert timeout and timeout[0].startswith("planner_node: instruction 'open the middle drawer': "
                                              'camera front, side timed out after 2.0 s')
     assert facts['nbps'] == 0
+    assert [(o['instruction'][:20], o['result'], o['segments']) for o in facts['outcomes']] == [
+        ('', 'refused', 0), ('open the drawer open', 'refused', 0), ('make me a sandwich', 'refused', 0),
+        ('open the middle draw', 'failed', 0)]
+    assert facts['outcomes'][3]['reason'].startswith('camera front, side timed out after 2.0 s')
     assert planner.returncode == 0, planner_err
 
 
@@ -322,6 +355,8 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
     assert any(re.fullmatch(done.format(1), s) for s in status), status
     assert any(re.fullmatch(done.format(2), s) for s in status), status
     assert status[-1] == "planner_node: instruction 'open the middle drawer': 2 segments done without success"
+    assert facts['outcomes'] == [{'instruction': 'open the middle drawer', 'result': 'failed',
+                                  'reason': '2 segments done without success', 'segments': 2}]
     assert planner.returncode == 0, errors[0]
 
 
@@ -406,17 +441,18 @@ def listen(expect: int, seconds: float, *instructions: str) -> None:
     """Publish each instruction once the planner listens; report status lines and NBPs seen."""
     from hdp_msgs_py.msg import PoseStamped, String
     node, status = _node('planner_listener')
-    nbps = []
+    nbps, outcomes = [], []
     node.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, nbps.append, 10)
+    node.create_subscription(String, topics.OUTCOME, lambda m: outcomes.append(json.loads(m.data)), 10)
     instruction = node.create_publisher(String, topics.INSTRUCTION, 10)
     assert _spin(node, 60, lambda: instruction.get_subscription_count() > 0), 'planner_node did not come up'
     _spin(node, 0.5)
     for text in instructions:
         instruction.publish(String(data=text))
         _spin(node, 0.2)
-    _spin(node, seconds, lambda: len([s for s in status if 'refused' in s or 'timed out' in s]) >= expect)
+    _spin(node, seconds, lambda: len(outcomes) >= expect)
     _spin(node, 0.5)
-    print(json.dumps({'status': status, 'nbps': len(nbps)}), flush=True)
+    print(json.dumps({'status': status, 'nbps': len(nbps), 'outcomes': outcomes}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -426,7 +462,8 @@ def controller() -> None:
     from hdp_msgs_py import workspace
     from hdp_msgs_py.msg import PoseStamped, String
     node, status = _node('fake_controller')
-    goals, poses = {}, []
+    goals, poses, outcomes = {}, [], []
+    node.create_subscription(String, topics.OUTCOME, lambda m: outcomes.append(json.loads(m.data)), 10)
     node.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
                              lambda m: goals.__setitem__(conversions.time_to_seconds(m.header.stamp), m), 10)
     node.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, poses.append, 10)
@@ -448,8 +485,8 @@ def controller() -> None:
                          'gripper_width': float(goal.position[0]) if goal else None,
                          'in_workspace': bool(workspace.in_workspace(xyz[None], above_table=0.0)[0])})
         results.publish(Header(stamp=pose.header.stamp, frame_id=topics.SEGMENT_DONE))
-    _spin(node, 15, lambda: any('segments done' in s for s in status))
-    print(json.dumps({'segments': segments, 'status': status}), flush=True)
+    _spin(node, 15, lambda: outcomes and any('segments done' in s for s in status))
+    print(json.dumps({'segments': segments, 'status': status, 'outcomes': outcomes}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
 

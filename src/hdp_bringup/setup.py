@@ -37,7 +37,7 @@ setup(
     entry_points={
         'hdp.commands': [
             'launch = hdp_bringup.launch_cli:configure',
-            'demo = hdp_bringup.demo:configure',
+            'demo = hdp_bringup.demo.cli:configure',
         ],
     },
 )

@@ -8,6 +8,7 @@ import typing
 
 INSTRUCTION = '/hdp/instruction'
 STATUS = '/hdp/status'
+OUTCOME = '/hdp/outcome'            # std_msgs/String JSON, see hdp_msgs_py.outcome
 NEXT_BEST_POSE = '/hdp/next_best_pose'
 JOINT_STATES = '/joint_states'
 ARM_TRAJECTORY = '/panda_arm_controller/joint_trajectory'

@@ -7,7 +7,8 @@
 The protocol with the controller is in the package README: the NBP's header.stamp keys the
 segment; the gripper goal carries the same stamp; the controller answers on
 /hdp/segment_result with it. ``PlannerLoop`` returns what to publish as ``Out(kind, msg)``:
-'nbp' (PoseStamped), 'gripper_goal' (JointState), or a status line 'info' / 'error' (str).
+'nbp' (PoseStamped), 'gripper_goal' (JointState), a status line 'info' / 'error' (str), or
+'outcome' (hdp_msgs_py.outcome.Outcome) once per instruction, when it ends or is refused.
 Times are seconds on the node's clock.
 """
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from hdp_motion import panda
 from hdp_msgs_py import checkpoints, conversions, topics
+from hdp_msgs_py.outcome import Outcome
 from hdp_msgs_py.msg import Header, JointState, Time
 
 from .language import words
@@ -57,7 +59,7 @@ def validate_instruction(text: str, vocabulary) -> str:
 
 
 class Out(NamedTuple):
-    kind: str                  # 'nbp' | 'gripper_goal' (msg is a message) | 'info' | 'error' (a str)
+    kind: str                  # 'nbp' | 'gripper_goal' (a message) | 'info' | 'error' (a str) | 'outcome'
     msg: object
 
 
@@ -178,7 +180,8 @@ class PlannerLoop:
         try:
             instruction = validate_instruction(text, self.vocabulary)
         except InstructionRefused as err:
-            return [Out('error', f'refused instruction: {err}')]
+            return [Out('error', f'refused instruction: {err}'),
+                    Out('outcome', Outcome(text.strip(), 'refused', str(err), 0))]
         if self.segment is not None:
             self.queued = instruction
             return [Out('info', f'instruction {instruction!r} queued: it starts when segment '
@@ -195,10 +198,10 @@ class PlannerLoop:
         line = (f'segment {segment.index}: pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
                 f'{"open" if segment.gripper_open else "close"} -> {msg.frame_id} in {now_s - segment.sent_s:.1f} s')
         if msg.frame_id != topics.SEGMENT_DONE:
-            return [Out('error', line)] + self._stop(f'segment {segment.index} failed', now_s)
+            return [Out('error', line)] + self._stop(f'segment {segment.index} failed', now_s, 'failed')
         self.gripper_open = segment.gripper_open
         if self.queued is not None:
-            return [Out('info', line)] + self._stop('replaced by a new instruction', now_s, error=False)
+            return [Out('info', line)] + self._stop('replaced by a new instruction', now_s, 'replaced')
         self._observe(now_s)
         return [Out('info', line)]
 
@@ -210,13 +213,14 @@ class PlannerLoop:
         if self.segment is not None:
             return [] if now_s <= self.deadline_s else self._result_timed_out(now_s)
         if self.success_heard and self.success:
-            return self._stop(f'task succeeded after {self.count} segments', now_s, error=False)
+            return self._stop(f'task succeeded after {self.count} segments', now_s, 'succeeded')
         awaiting_success = self.success_heard and self.success is None
         if self.count >= self.max_segments:
             if awaiting_success and now_s <= self.deadline_s:
                 return []
             outcome = 'without success' if self.success_heard else '(this robot reports no success)'
-            return self._stop(f'{self.max_segments} segments done {outcome}', now_s, error=self.success_heard)
+            return self._stop(f'{self.max_segments} segments done {outcome}', now_s,
+                              'failed' if self.success_heard else 'ended')
         waiting_for = self.observations.missing(self.since_ns) + ([topics.SIM_SUCCESS] if awaiting_success else [])
         if waiting_for:
             if now_s <= self.deadline_s:
@@ -224,7 +228,7 @@ class PlannerLoop:
             cameras = sorted({w.split()[0] for w in waiting_for if ' camera' in w})
             subject = f'camera {", ".join(cameras)} ' if cameras else ''
             return self._stop(f'{subject}timed out after {self.camera_timeout_s:.1f} s '
-                              f'(no fresh {", ".join(waiting_for)})', now_s)
+                              f'(no fresh {", ".join(waiting_for)})', now_s, 'failed')
         return self._predict_and_send(now_s, now_ns)
 
     def _result_timed_out(self, now_s: float) -> list[Out]:
@@ -237,7 +241,7 @@ class PlannerLoop:
         line = (f'segment {segment.index}: no result from the controller within {self.result_timeout_s:.1f} s '
                 f'(is controller_node running?)')
         if self.queued is not None:
-            return [Out('error', line)] + self._stop('replaced by a new instruction', now_s, error=False)
+            return [Out('error', line)] + self._stop('replaced by a new instruction', now_s, 'replaced')
         self._observe(now_s)
         return [Out('error', line + ('; re-observing' if self.count < self.max_segments else ''))]
 
@@ -248,7 +252,7 @@ class PlannerLoop:
                 self.gripper_open = width >= panda.GRIPPER_OPEN_WIDTH - 0.005
             nbp = self.agent.predict(*self.observations.agent_inputs(), self.instruction, (q, self.gripper_open))
         except (ValueError, RuntimeError) as err:       # bad frames or joint states; torch shape errors
-            return self._stop(f'cannot predict a next-best pose: {err}', now_s)
+            return self._stop(f'cannot predict a next-best pose: {err}', now_s, 'failed')
         self._last_stamp_ns = max(now_ns, self._last_stamp_ns + 1)     # distinct keys, even on a paused clock
         stamp = Time(sec=self._last_stamp_ns // 1_000_000_000, nanosec=self._last_stamp_ns % 1_000_000_000)
         self.count += 1
@@ -278,8 +282,10 @@ class PlannerLoop:
         self.success = None
         self.deadline_s = now_s + self.camera_timeout_s
 
-    def _stop(self, why: str, now_s: float, error: bool = True) -> list[Out]:
-        out = [Out('error' if error else 'info', f'instruction {self.instruction!r}: {why}')]
+    def _stop(self, why: str, now_s: float, result: str) -> list[Out]:
+        """End the instruction with ``result`` (outcome.RESULTS): a status line and its outcome."""
+        out = [Out('error' if result == 'failed' else 'info', f'instruction {self.instruction!r}: {why}'),
+               Out('outcome', Outcome(self.instruction, result, why, self.count))]
         self.instruction, self.segment = None, None
         if self.queued is not None:
             queued, self.queued = self.queued, None

@@ -50,6 +50,7 @@ class PlannerNode(ros.Node):
         self._outputs = {
             'nbp': self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS),
             'gripper_goal': self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS),
+            'outcome': self.create_publisher(String, topics.OUTCOME, topics.COMMAND_QOS),
         }
         self.create_subscription(String, topics.INSTRUCTION,
                                  lambda m: self._send(self.loop.on_instruction(m.data, self._now())), 10)
@@ -78,6 +79,8 @@ class PlannerNode(ros.Node):
         for kind, msg in outputs:
             if kind in ('info', 'error'):
                 self.status.say(kind, msg)
+            elif kind == 'outcome':
+                self._outputs[kind].publish(String(data=msg.to_json()))
             else:
                 self._outputs[kind].publish(msg)
 

@@ -1,0 +1,214 @@
+"""The `hdp demo` command: arguments, the ROS domain, the node processes, the outputs.
+
+Starts sim_bridge_node, planner_node and controller_node as `hdp launch` does
+(launch_cli.running_nodes), waits until they are connected, runs the episodes through
+watcher.run_episode and writes what it saw.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import random
+import signal
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+
+from hdp_msgs_py import ros
+from hdp_msgs_py.msg import String
+
+from ..launch_cli import NODES, default_params_file, node_commands, running_nodes
+from .cpu import cpu_seconds, read_stats
+from .episode_log import segment_line
+from .figures import figures, format_figures
+from .media import write_episode_files
+from .watcher import DemoNode, GraphDown, Interrupted, Session, run_episode
+
+METHODS = ('rkd', 'planner', 'pose_ik', 'joint')      # controller_node's `method` parameter
+SAMPLERS = ('ddim', 'ddpm')                            # controller_node's `sampler` parameter
+DEFAULT_SEED = 1000            # evaluation seeds start here, apart from every training seed
+STARTUP_TIMEOUT_S = 300.0      # three processes importing torch and loading checkpoints on a busy CPU
+SAFE_DOMAINS = range(1, 102)   # ROS_DOMAIN_IDs whose ports stay below Linux's ephemeral range
+
+
+def pick_domain(env, rng: random.Random) -> tuple[int, bool]:
+    """(ROS_DOMAIN_ID, picked): the environment's, else one drawn from SAFE_DOMAINS so that the
+    demo's graph does not meet another graph on this machine (discovery is localhost-only)."""
+    text = (env.get('ROS_DOMAIN_ID') or '').strip()
+    if not text:
+        return rng.choice(SAFE_DOMAINS), True
+    if not text.isdigit() or int(text) > 232:
+        raise ValueError(f'ROS_DOMAIN_ID must be an integer 0..232, got {text!r}')
+    return int(text), False
+
+
+def configure(parser) -> None:
+    """Run the HDP graph on one task and show it: segments, a GIF, a trajectory plot, figures.
+
+    Starts sim_bridge_node, planner_node and controller_node (as `hdp launch`), waits until they
+    are connected, sends the episode's instruction and prints one line per segment. Writes to
+    OUT: <task>_seed<S>.gif (front camera), <task>_seed<S>_trajectory.png (joints over time,
+    end-effector path and NBPs), summary.json (segments, stage times, CPU per node) and the
+    nodes' output in logs/. Exit 0 when every episode succeeded, 1 on a failure or timeout,
+    2 on bad arguments or a refused instruction, 130 on Ctrl-C; the nodes are stopped on every exit.
+    """
+    parser.add_argument('--task', required=True, metavar='TASK',
+                        help='e.g. reach_target or open_drawer (an unknown name lists the six tasks)')
+    parser.add_argument('--instruction', default=None,
+                        help="what to say (default: the episode's own instruction for the task and seed)")
+    parser.add_argument('--seed', type=int, default=DEFAULT_SEED,
+                        help=f'scene seed (default {DEFAULT_SEED}: evaluation seeds, never trained on)')
+    parser.add_argument('--episodes', type=int, default=1,
+                        help='episodes on seeds SEED, SEED+1, ...; the sim is reset between them and the '
+                             'graph stays up, so the figures get p50/p95 (default 1)')
+    parser.add_argument('--out', type=Path, default=Path('demo_out'), help='output directory (default demo_out/)')
+    parser.add_argument('--method', choices=METHODS, default='rkd', help='low-level method (default rkd)')
+    parser.add_argument('--sampler', choices=SAMPLERS, default='ddim',
+                        help='RK-Diffuser sampler: ddim (5 steps, unguided), ddpm (100, guided) (default ddim)')
+    parser.add_argument('--timeout', type=float, default=180.0, metavar='S',
+                        help='seconds per episode, instruction to the end (default 180)')
+    parser.add_argument('--params-file', type=Path, default=None,
+                        help=f'node parameters (default: {default_params_file()})')
+    parser.add_argument('--json', action='store_true',
+                        help='print summary.json on stdout (progress goes to stderr)')
+    parser.epilog = ('ROS_DOMAIN_ID: the environment\'s if set, else a free-looking one is picked at random '
+                     f'from {SAFE_DOMAINS.start}..{SAFE_DOMAINS.stop - 1} and printed.')
+    parser.set_defaults(func=run)
+
+
+def argument_problem(args, tasks) -> str | None:
+    """Why these arguments cannot run, or None."""
+    if args.task not in tasks:
+        return f'unknown task {args.task!r}; tasks: {", ".join(tasks)}'
+    if args.instruction is not None and not args.instruction.strip():
+        return '--instruction is empty'
+    if args.seed < 0 or args.episodes < 1 or not args.timeout > 0:
+        return '--seed must be >= 0, --episodes >= 1 and --timeout > 0'
+    params = args.params_file or default_params_file()
+    if not params.is_file():
+        return f'no parameter file {params}'
+    return None
+
+
+def json_stdout():
+    """The real stdout, for the summary alone: fd 1 goes to stderr from now on, so what C libraries
+    print there (pybullet's banners, flushed at exit) cannot mix into the JSON."""
+    sys.stdout.flush()
+    real = os.fdopen(os.dup(1), 'w')
+    os.dup2(2, 1)
+    return real
+
+
+def run(args) -> int:
+    from hdp_sim_bridge.tasks import TASKS
+    json_out = json_stdout() if args.json else None
+    say_to = sys.stderr if args.json else sys.stdout
+
+    def say(text: str) -> None:
+        print(f'[demo] {text}', file=say_to, flush=True)
+
+    problem = argument_problem(args, TASKS)
+    try:
+        domain, picked = pick_domain(os.environ, random.Random())
+    except ValueError as err:
+        problem = problem or str(err)
+    if problem:
+        print(f'hdp demo: {problem}', file=sys.stderr)
+        return 2
+    overrides = [f'sim_bridge_node:task:={args.task}', f'sim_bridge_node:seed:={args.seed}',
+                 f'controller_node:method:={args.method}', f'controller_node:sampler:={args.sampler}']
+    commands = node_commands(list(NODES), args.params_file or default_params_file(), overrides)
+    logs = args.out / 'logs'
+    logs.mkdir(parents=True, exist_ok=True)
+    say(f'ROS_DOMAIN_ID={domain} ' + ('(picked at random; set ROS_DOMAIN_ID to choose)' if picked
+                                       else '(from the environment)'))
+    say(f'node output: {logs}/<node>.log')
+
+    ros.init(args=[], domain_id=domain)
+    stop: list[str] = []
+
+    def on_signal(signum, frame):
+        stop.append(signal.Signals(signum).name)     # the first ends the demo; later ones wait for the stop
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    records, logs_by_episode, code = [], [], 1
+    started = time.monotonic()
+    node = DemoNode(lambda segment: say(segment_line(segment)))
+    try:
+        with contextlib.ExitStack() as files:
+            def output(name):
+                return files.enter_context(open(logs / f'{name}.log', 'w'))
+            env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+            with running_nodes(commands, output, say, env) as procs:
+                code = _run(Session(node, procs, stop), args, procs, records, logs_by_episode, started, say)
+    except Interrupted as why:
+        say(f'{why}: stopped the nodes')
+        code = 130
+    except GraphDown as why:
+        say(f'{why}; stopped the nodes (see {logs}/)')
+        code = 1
+    finally:
+        for sig, handler in previous.items():       # the runtime's, which shutdown replaces in turn
+            signal.signal(sig, handler)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    if records:
+        _write_outputs(args, domain, picked, records, logs_by_episode, started, say, json_out)
+    return code
+
+
+def _run(session: Session, args, procs, records, logs_by_episode, started, say) -> int:
+    """Wait for the graph, run the episodes; the exit code (2: the planner refused the instruction)."""
+    node = session.node
+    say('waiting for the nodes to load their models and connect ...')
+    if not session.spin_until(lambda: not node.not_connected(), STARTUP_TIMEOUT_S):
+        raise GraphDown(f'the graph did not connect within {STARTUP_TIMEOUT_S:.0f} s '
+                        f'(missing: {", ".join(node.not_connected())})')
+    say(f'graph up after {time.monotonic() - started:.1f} s')
+    ticks = os.sysconf('SC_CLK_TCK')
+    pids = {name: proc.pid for name, proc in procs.items()}
+
+    def cpu_sample():
+        return cpu_seconds(pids, read_stats(), ticks)
+    for i in range(args.episodes):
+        seed = args.seed + i
+        if i:
+            node.episode = None
+            node.reset.publish(String(data=json.dumps({'task': args.task, 'seed': seed})))
+        record, log = run_episode(session, seed, args.instruction, args.timeout, cpu_sample, say)
+        records.append(record)
+        logs_by_episode.append(log)
+        if record['outcome'] == 'refused':
+            say(f"planner_node refused the instruction: {record['reason']}")
+            return 2
+        if record['outcome'] == 'timeout':        # the planner may still be at it: a reset would mislead it
+            say(f"seed {seed}: TIMEOUT ({record['reason']}); no further episodes")
+            return 1
+        verdict = 'succeeded' if record['success'] else f"FAILED ({record['outcome']}: {record['reason']})"
+        when = f" in {record['success_s']:.1f} s" if record['success'] else ''
+        say(f"seed {seed}: {verdict}{when}, {len(record['segments'])} segments")
+    return 0 if all(r['success'] for r in records) else 1
+
+
+def _write_outputs(args, domain, picked, records, logs_by_episode, started, say, json_out) -> None:
+    """Each episode's GIF and plot (none for a refused instruction: nothing moved), summary.json,
+    and the figures table when there were segments to measure."""
+    figs = figures(records)
+    for record, log in zip(records, logs_by_episode):
+        if record['outcome'] != 'refused':
+            title = (f"{record['task']} seed {record['seed']}: {record['instruction']!r} ({args.method}, "
+                     f"{args.sampler}) -> {'success' if record['success'] else record['outcome']}")
+            write_episode_files(log, record, args.out, title)
+    summary = {'task': args.task, 'method': args.method, 'sampler': args.sampler, 'ros_domain_id': domain,
+               'ros_domain_id_picked': picked, 'total_wall_s': round(time.monotonic() - started, 1),
+               'figures': figs, 'episodes': records}
+    (args.out / 'summary.json').write_text(json.dumps(summary, indent=1))
+    if figs['observe_predict_s']['n']:
+        say('figures:\n' + format_figures(figs))
+    files = [f for r in records for f in (r.get('gif'), r.get('plot')) if f]
+    say(f"wrote {', '.join(str(args.out / f) for f in [*files, 'summary.json'])}")
+    if json_out is not None:
+        print(json.dumps(summary, indent=1), file=json_out, flush=True)

@@ -1,0 +1,200 @@
+"""The graph from outside: the demo's node, and one episode driven through it.
+
+The demo listens to the cameras and /joint_states best effort, so that a slow demo process
+never holds the graph back, and learns how each instruction ended from /hdp/outcome.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import rclpy
+
+from hdp_motion import panda
+from hdp_msgs_py import conversions, ros, topics
+from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
+from hdp_msgs_py.outcome import Outcome
+
+from ..launch_cli import NODES
+from .cpu import cpu_usage
+from .episode_log import EpisodeLog, stamp_ns
+from .media import GIF_WIDTH
+
+SCENE_TIMEOUT_S = 60.0         # for a (reset) scene to show a frame and its success report
+
+
+class Interrupted(Exception):
+    """SIGINT or SIGTERM: stop the nodes and exit."""
+
+
+class GraphDown(Exception):
+    """A node process exited, or the graph or a scene did not come up in time."""
+
+
+class DemoNode(ros.Node):
+    """The demo's view of the graph; callbacks feed the EpisodeLog of the running instruction."""
+
+    def __init__(self, on_segment):
+        super().__init__('hdp_demo')
+        self.on_segment = on_segment
+        self.log: EpisodeLog | None = None
+        self.episode: dict | None = None      # the latest /hdp/sim/episode
+        self.success: bool | None = None      # the latest /hdp/sim/success since that episode
+        self.frame = None                     # (sim stamp s, rgb) the latest front frame since then
+        self.instruction = self.create_publisher(String, topics.INSTRUCTION, topics.COMMAND_QOS)
+        self.reset = self.create_publisher(String, topics.SIM_RESET, topics.COMMAND_QOS)
+        self._arm_joints = list(panda.ARM_JOINTS)
+        for msg_type, topic, callback, qos in (
+                (String, topics.SIM_EPISODE, self._on_episode, topics.LATCHED_QOS),
+                (Bool, topics.SIM_SUCCESS, self._on_success, topics.COMMAND_QOS),
+                (String, topics.STATUS, self._on_status, topics.STATUS_QOS),
+                (String, topics.OUTCOME, self._on_outcome, topics.COMMAND_QOS),
+                (JointState, topics.NEXT_BEST_GRIPPER, self._on_gripper_goal, topics.COMMAND_QOS),
+                (PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS),
+                (JointTrajectory, topics.ARM_TRAJECTORY, self._on_trajectory, topics.COMMAND_QOS),
+                (Header, topics.SEGMENT_RESULT, self._on_result, topics.COMMAND_QOS),
+                (Image, topics.color_image('front'), self._on_frame, topics.SENSOR_QOS),
+                (JointState, topics.JOINT_STATES, self._on_joints, topics.SENSOR_QOS)):
+            self.create_subscription(msg_type, topic, callback, qos)
+
+    def not_connected(self) -> list[str]:
+        """What is not matched yet between the demo and the nodes (empty: the graph is up)."""
+        wanted = [('planner_node subscribed to ' + topics.INSTRUCTION, self.instruction.get_subscription_count()),
+                  ('sim_bridge_node subscribed to ' + topics.SIM_RESET, self.reset.get_subscription_count()),
+                  ('controller_node subscribed to ' + topics.NEXT_BEST_POSE,
+                   self.count_subscribers(topics.NEXT_BEST_POSE)),
+                  ('controller_node publishing ' + topics.SEGMENT_RESULT, self.count_publishers(topics.SEGMENT_RESULT)),
+                  ('planner_node publishing ' + topics.NEXT_BEST_POSE, self.count_publishers(topics.NEXT_BEST_POSE))]
+        missing = [what for what, count in wanted if count < 1]
+        if self.count_publishers(topics.STATUS) < len(NODES):
+            missing.append(f'{topics.STATUS} from all {len(NODES)} nodes')
+        return missing
+
+    def scene_missing(self) -> list[str]:
+        """What the current scene has not shown yet: the episode, a front frame, a success report."""
+        return [what for what, there in (
+            ('the episode on ' + topics.SIM_EPISODE, self.episode is not None),
+            ('a front camera frame', self.frame is not None),
+            ('a success report (false) for the new scene', self.success is False)) if not there]
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def _on_episode(self, msg):
+        self.episode, self.success, self.frame = json.loads(msg.data), None, None
+
+    def _on_success(self, msg):
+        self.success = bool(msg.data)
+        if self.log is not None and self.success:
+            self.log.success(self.now())
+
+    def _on_status(self, msg):
+        if self.log is not None:
+            self.log.status.append((self.now() - self.log.start, msg.data))
+
+    def _on_outcome(self, msg):
+        if self.log is not None:
+            try:
+                self.log.outcomes.append(Outcome.from_json(msg.data))
+            except ValueError as err:
+                self.get_logger().warning(f'ignored a malformed {topics.OUTCOME}: {err}')
+
+    def _on_gripper_goal(self, msg):
+        if self.log is not None and len(msg.position) == 1:
+            self.log.gripper_goal(stamp_ns(msg.header.stamp),
+                                  float(msg.position[0]) >= panda.GRIPPER_OPEN_WIDTH / 2)
+
+    def _on_nbp(self, msg):
+        if self.log is not None:
+            p = msg.pose.position
+            self.log.nbp(self.now(), stamp_ns(msg.header.stamp), (p.x, p.y, p.z))
+
+    def _on_trajectory(self, msg):
+        if self.log is not None and msg.points:
+            duration = conversions.duration_to_seconds(msg.points[-1].time_from_start)
+            self.log.trajectory(self.now(), len(msg.points), duration)
+
+    def _on_result(self, msg):
+        if self.log is not None:
+            segment = self.log.result(self.now(), stamp_ns(msg.stamp), msg.frame_id)
+            if segment is not None:
+                self.on_segment(segment)
+
+    def _on_frame(self, msg):
+        import cv2
+        rgb = conversions.image_to_numpy(msg)
+        height = round(rgb.shape[0] * GIF_WIDTH / rgb.shape[1])
+        small = cv2.resize(rgb, (GIF_WIDTH, height), interpolation=cv2.INTER_AREA)
+        self.frame = (conversions.time_to_seconds(msg.header.stamp), small)
+        if self.log is not None:
+            self.log.frames.append((self.now() - self.log.start, *self.frame))
+
+    def _on_joints(self, msg):
+        if self.log is not None:
+            names = list(msg.name)
+            if all(n in names for n in self._arm_joints):
+                q = np.array([msg.position[names.index(n)] for n in self._arm_joints])
+                self.log.joints.append((self.now() - self.log.start,
+                                        conversions.time_to_seconds(msg.header.stamp), q))
+
+
+class Session:
+    """The demo node spinning while the node processes run; every wait checks both."""
+
+    def __init__(self, node, procs: dict, stop: list):
+        self.node, self.procs, self.stop = node, procs, stop
+
+    def spin_until(self, done, timeout_s: float) -> bool:
+        """Spin until ``done()``; False on timeout. Interrupted or GraphDown end the wait early."""
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if self.stop:
+                raise Interrupted(self.stop[0])
+            died = next((n for n, p in self.procs.items() if p.poll() is not None), None)
+            if died is not None:
+                raise GraphDown(f'{died} exited with code {self.procs[died].returncode}')
+            if time.monotonic() >= deadline:
+                return False
+            rclpy.spin_once(self.node, timeout_sec=0.1)
+        return True
+
+
+def run_episode(session: Session, seed: int, instruction: str | None, timeout_s: float,
+                cpu_sample, say) -> tuple[dict, EpisodeLog]:
+    """One instruction on the current scene: (its summary record, its EpisodeLog).
+
+    The scene is ready when it has shown a front frame and reported no success since it was
+    set; the instruction then goes out and the episode ends with the planner's outcome for it
+    on /hdp/outcome, or after ``timeout_s`` ('timeout').
+    """
+    node = session.node
+    if not session.spin_until(lambda: not node.scene_missing() and node.episode['seed'] == seed, SCENE_TIMEOUT_S):
+        raise GraphDown(f'the scene of seed {seed} did not come up within {SCENE_TIMEOUT_S:.0f} s '
+                        f'(waiting for {", ".join(node.scene_missing())})')
+    episode = dict(node.episode)
+    text = (instruction or episode['instruction']).strip()
+    say(f"episode {episode['task']} seed {seed} variation {episode['variation']}: {text!r}")
+    before = cpu_sample()
+    log = EpisodeLog(node.now())
+    log.frames.append((0.0, *node.frame))           # the scene before anything moves
+    node.log = log
+    node.instruction.publish(String(data=text))
+
+    def ours():
+        return next((o for o in log.outcomes if o.instruction == text), None)
+    ended = session.spin_until(lambda: ours() is not None, timeout_s)
+    wall_s = node.now() - log.start
+    node.log = None
+    cpu = cpu_usage(before, cpu_sample(), wall_s)
+    result, reason = (ours()[1:3] if ended else ('timeout', f'no outcome within {timeout_s:.0f} s'))
+    record = {'task': episode['task'], 'seed': seed, 'variation': episode['variation'], 'instruction': text,
+              'outcome': result, 'reason': reason,
+              'success': result == 'succeeded',
+              'success_s': log.success_s, 'wall_s': round(wall_s, 3),
+              'segments': [s.to_dict() for s in log.segments], 'cpu': cpu,
+              'status': [f'{t:7.2f} {line}' for t, line in log.status]}
+    return record, log
+
+
