@@ -79,6 +79,12 @@ def main():
     probe.spin_for(10, until=lambda: probe.seen['episodes'][-1]['task'] == 'open_drawer')
     probe.reset.publish(String(data='{"task": "make_tea"}'))
     probe.spin_for(2.0)
+    # A variation the task does not have: refused before the scene is touched; the bridge carries on.
+    probe.reset.publish(String(data=json.dumps({'task': 'open_drawer', 'seed': 6, 'variation': 999})))
+    probe.spin_for(1.0)
+    reports = len(probe.seen['success'])
+    probe.spin_for(2.0)
+    facts['success_reports_after_bad_variation'] = len(probe.seen['success']) - reports
 
     stamps = np.array(probe.seen['joint_stamps'])
     rising = np.diff(stamps)

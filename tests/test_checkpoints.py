@@ -62,12 +62,13 @@ def test_save_refuses_a_payload_without_format_and_version(tmp_path):
     assert not os.listdir(tmp_path)
 
 
-@pytest.mark.parametrize('damage', ['truncated', 'random bytes', 'empty', 'text'])
+@pytest.mark.parametrize('damage', ['truncated', 'cut in half', 'random bytes', 'empty', 'text'])
 def test_damaged_files_are_refused_without_torchs_advice(tmp_path, damage):
     whole = tmp_path / 'whole.pt'
     checkpoints.save(whole, _payload())
     path = tmp_path / 'damaged.pt'
-    path.write_bytes({'truncated': whole.read_bytes()[:300], 'random bytes': random.Random(0).randbytes(4000),
+    data = whole.read_bytes()
+    path.write_bytes({'truncated': data[:300], 'cut in half': data[:len(data) // 2], 'random bytes': random.Random(0).randbytes(4000),
                       'empty': b'', 'text': b'not a checkpoint'}[damage])
     message = _refused(path, 'not a readable checkpoint')
     assert 'weights_only' not in message

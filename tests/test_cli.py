@@ -208,3 +208,36 @@ def test_planner_node_executable_acknowledges_an_instruction(ros_domain):
     assert echo.returncode == 0, err
     assert docs and "'open the drawer'" in docs[-1]['data'], (docs, err)
     assert node.returncode == 0
+
+
+# --- damaged checkpoints: one line naming the file, never torch's traceback or advice ----------------
+
+def _damaged_checkpoint(tmp_path) -> Path:
+    """The released RK-Diffuser cut after 5 kB: a zip whose header is whole (torch's reader fails
+    with an OSError, not an unpickling error)."""
+    from hdp_msgs_py import checkpoints
+    path = tmp_path / 'cut.pt'
+    path.write_bytes(checkpoints.default_path('rk_diffuser.pt').read_bytes()[:5000])
+    return path
+
+
+@pytest.mark.parametrize('command', [
+    ('eval', 'low-level', '--methods', 'rkd', '--tasks', 'reach_target', '--episodes', '1', '--seed-start', '1000',
+     '--checkpoint', '{bad}'),
+    ('eval', 'hierarchy', '--agents', 'hdp', '--tasks', 'reach_target', '--episodes', '1', '--seed-start', '1000',
+     '--low-level-checkpoint', '{bad}'),
+    ('eval', 'hierarchy', '--agents', 'hdp', '--tasks', 'reach_target', '--episodes', '1', '--seed-start', '1000',
+     '--agent-checkpoint', '{bad}'),
+    ('plot', 'low-level', '--checkpoint', '{bad}', '--out', '{tmp}/fig.png'),
+    ('bench', 'controller', '--checkpoint', '{bad}', '--tasks', 'reach_target', '--episodes', '1'),
+    ('eval', 'high-level-offline', '--checkpoint', '{bad}', '--data', '{tmp}'),
+], ids=lambda c: ' '.join(c[:2]) + (' ' + c[-2] if 'hierarchy' in c else ''))
+def test_a_damaged_checkpoint_is_one_line_naming_the_file(tmp_path, command):
+    bad = _damaged_checkpoint(tmp_path)
+    argv = [a.format(bad=bad, tmp=tmp_path) for a in command]
+    proc = subprocess.run([*HDP, *argv], capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, OMP_NUM_THREADS='1'))
+    assert proc.returncode == 1, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if str(bad) in line]
+    assert len(errors) == 1 and 'is not a readable checkpoint' in errors[0], proc.stderr
+    assert 'Traceback' not in proc.stderr and 'weights_only' not in proc.stderr + proc.stdout

@@ -30,11 +30,13 @@ def home_pose() -> np.ndarray:
     return kinematics.fk_pose(torch.as_tensor(panda.HOME, dtype=torch.float64)).numpy()
 
 
+REACHING_Q = panda.HOME + 0.1      # where FakePolicy's plans end by default
+
+
 def reachable_goal() -> np.ndarray:
-    """10 cm forward, sideways and down from home, hand pointing down: above the table, in the workspace."""
-    goal = home_pose().copy()
-    goal[:3] += [0.1, 0.1, -0.1]
-    return goal
+    """The hand at REACHING_Q: a few cm from home, above the table, in the workspace."""
+    from hdp_motion import kinematics
+    return kinematics.fk_pose(torch.as_tensor(REACHING_Q, dtype=torch.float64)).numpy()
 
 
 def nbp(xyz, quat, stamp_sec: int = 1, frame_id: str = 'world'):
@@ -163,6 +165,21 @@ def test_out_of_limit_or_failed_plans_are_refused_never_sent():
         plan_segment(FakePolicy(failure='no_path'), _request(), panda.ARM_JOINTS, 0.5)
 
 
+def test_a_plan_that_ends_away_from_its_nbp_is_refused_with_the_distance():
+    from hdp_controller.controller_logic import SegmentRefused, plan_segment
+    far = np.vstack([panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])])   # swings 20+ cm aside
+    with pytest.raises(SegmentRefused, match=r'fake plan ends 0\.\d+ m and [\d.]+ deg from the NBP '
+                                              r'\(tolerance 0\.100 m, 15\.0 deg\)'):
+        plan_segment(FakePolicy(far), _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0))
+    turned = np.vstack([panda.HOME, REACHING_Q + np.array([0, 0, 0, 0, 0, 0, 0.5])])  # the hand turned 29 deg
+    with pytest.raises(SegmentRefused, match=r'0\.00\d m and 28\.6 deg'):
+        plan_segment(FakePolicy(turned), _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0))
+    half_turn = REACHING_Q - np.array([0, 0, 0, 0, 0, 0, math.pi])     # the same grasp: fingers swapped
+    plan_segment(FakePolicy([half_turn]), _request(), panda.ARM_JOINTS, 0.5, (0.01, 1.0))
+    exact, _ = plan_segment(FakePolicy([REACHING_Q]), _request(), panda.ARM_JOINTS, 0.5, (0.001, 0.1))
+    assert np.allclose(exact.points[-1].positions, REACHING_Q)
+
+
 def test_planner_method_reaches_the_goal_pose_within_limits():
     from hdp_motion import kinematics
     from hdp_controller.baselines import PlannerPolicy
@@ -233,7 +250,7 @@ def test_segment_timeouts_and_no_gripper_action():
 
 def _controller(policy=None, needs_points=False):
     from hdp_controller.controller_logic import SegmentController
-    controller = SegmentController(policy or FakePolicy([panda.HOME + 0.1]), needs_points, 0.5, 5.0)
+    controller = SegmentController(policy or FakePolicy([REACHING_Q]), needs_points, 0.5, 5.0)
     controller.on_joint_state(joint_state_msg(panda.HOME))
     return controller
 
@@ -268,6 +285,19 @@ def test_controller_pairs_the_gripper_goal_by_stamp_and_reports_done():
     controller.on_joint_state(joint_state_msg(end, fingers=(0.04, 0.04)))
     controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=5), now_s=31.0)
     assert 'gripper stays open' in controller.step(32.0)[0].msg
+
+
+def test_a_robot_that_stops_answering_fails_the_running_segment_naming_why():
+    controller = _controller()
+    assert controller.robot_gone('no /joint_states for 5.2 s') == []            # idle: nothing to fail
+    goal = reachable_goal()
+    controller.on_gripper_goal(gripper_goal_msg(False, stamp_sec=3))
+    controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=0.0)
+    assert _kinds(controller.step(0.05)) == ['arm', 'info']
+    out = controller.robot_gone('no /joint_states for 5.2 s')
+    assert _kinds(out) == ['error', 'result'] and out[1].msg.stamp.sec == 3
+    assert out[0].msg == 'segment 3.000 failed: no /joint_states for 5.2 s'
+    assert out[1].msg.frame_id == 'failed: no /joint_states for 5.2 s' and controller.running is None
 
 
 def test_controller_without_a_gripper_goal_keeps_the_gripper_after_a_short_wait():
@@ -308,7 +338,7 @@ def test_a_newer_nbp_supersedes_the_running_segment_and_a_repeat_is_ignored():
 def test_controller_refuses_without_joint_states_or_camera():
     from hdp_controller.controller_logic import STARTUP_WAIT_S, SegmentController
     goal = reachable_goal()
-    blind = SegmentController(FakePolicy([panda.HOME]), False, 0.5, 5.0)
+    blind = SegmentController(FakePolicy([REACHING_Q]), False, 0.5, 5.0)
     blind.on_joint_state(JointState(name=list(panda.FINGER_JOINTS), position=[0.04, 0.04]))   # fingers only
     blind.on_gripper_goal(gripper_goal_msg(True))
     blind.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
@@ -326,7 +356,7 @@ def test_controller_refuses_without_joint_states_or_camera():
 def test_an_nbp_that_beats_the_first_joint_state_waits_for_it():
     from hdp_controller.controller_logic import SegmentController
     goal = reachable_goal()
-    controller = SegmentController(FakePolicy([panda.HOME]), False, 0.5, 5.0)
+    controller = SegmentController(FakePolicy([REACHING_Q]), False, 0.5, 5.0)
     controller.on_gripper_goal(gripper_goal_msg(True))
     controller.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
     assert controller.step(1.0) == []
@@ -338,7 +368,7 @@ def test_controller_builds_front_camera_points_for_learned_methods():
     from hdp_sim_bridge.cameras import default_cameras
     camera = default_cameras(32, 24)['front']
     depth = np.full((24, 32), 1500, np.uint16)
-    policy = FakePolicy([panda.HOME])
+    policy = FakePolicy([REACHING_Q])
     controller = _controller(policy, needs_points=True)
     controller.on_tf_static(TFMessage(transforms=[camera.transform_stamped()]))
     goal = reachable_goal()

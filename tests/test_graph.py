@@ -12,6 +12,7 @@ import collections
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -309,6 +310,20 @@ def test_a_nan_pose_is_rejected_with_a_status_line_and_no_trajectory(graph):
     assert graph.quiet(topics.ARM_TRAJECTORY, t) == []
 
 
+def test_an_nbp_the_arm_cannot_reach_is_refused_with_its_distance_and_nothing_moves(graph):
+    """The hand pointing up, 3 cm above the table: the plan ends far from it, so nothing is sent."""
+    graph.new_episode('reach_target', 1000)
+    stamp = Time(sec=8)
+    up = PoseStamped(header=Header(stamp=stamp, frame_id=topics.NBP_FRAME), pose=Pose(
+        position=Point(x=0.7, y=0.3, z=0.78), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)))
+    t = graph.publish(topics.NEXT_BEST_POSE, up)
+    result = graph.wait('a result for the unreachable pose', lambda: next(
+        (r for r in graph.since(topics.SEGMENT_RESULT, t) if r.stamp == stamp), None), 60)
+    assert re.fullmatch(r'failed: rkd plan ends [\d.]+ m and [\d.]+ deg from the NBP \(tolerance 0.100 m, '
+                        r'15.0 deg\): the NBP is not reachable as given', result.frame_id), result.frame_id
+    assert graph.quiet(topics.ARM_TRAJECTORY, t) == []
+
+
 def test_a_camera_that_stops_is_named_in_the_planner_timeout(graph):
     episode = graph.new_episode('reach_target', 1000)
     try:
@@ -394,3 +409,24 @@ def test_a_killed_controller_is_reported_and_a_restarted_one_finishes_the_task(g
             assert graph.seen_success(killed)
             return
     pytest.fail('no seed succeeded after the restart:\n' + '\n'.join(outcomes) + f'\n{graph.report()}')
+
+
+# --- a simulator that dies mid-segment (last: the graph runs on a restarted bridge afterwards) ------
+
+def test_a_dead_simulator_is_named_by_the_controller_and_the_planner_within_seconds(graph):
+    episode = graph.new_episode(KILL_TASK, KILL_SEEDS[0])
+    instruction = instruction_for(episode)
+    t = graph.instruct(instruction)
+    graph.wait('the first trajectory', lambda: trajectories_since(graph, t), 120)
+    graph.kill('sim_bridge_node')                  # /joint_states and /clock stop with it
+    killed = time.monotonic()
+    failed = graph.wait('the controller naming the dead simulator', lambda: [
+        s for s in graph.status(killed, 'controller_node: segment ') if 'failed: no /joint_states for' in s], 30)
+    end = graph.wait_end(instruction, t)
+    noticed_s = time.monotonic() - killed
+    assert 'is sim_bridge_node (or the robot driver) running?' in failed[0], failed
+    assert 'no /joint_states for' in end and 'is sim_bridge_node' in end, end       # not the controller blamed
+    assert noticed_s < 15.0, f'noticed after {noticed_s:.1f} s'
+    assert not graph.status(killed, 'planner_node: segment 1: no result from the controller'), graph.report()
+    restarted = graph.start('sim_bridge_node')
+    graph.wait('the restarted simulator', lambda: graph.since(topics.SIM_EPISODE, restarted), START_TIMEOUT_S)

@@ -237,10 +237,22 @@ def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_th
     assert 'queued' in _texts(loop.on_instruction('pick up the cup', 0.2))[0]
     out = loop.on_result(_result(stamp, 'failed: no path'), 1.0)
     assert _texts(out) == ['segment 1: pose (0.500, 0.100, 0.900) gripper close -> failed: no path in 0.9 s',
-                           "instruction 'open the drawer': segment 1 failed",
+                           "instruction 'open the drawer': segment 1 failed: no path",
                            "instruction 'pick up the cup': up to 3 segments"]
     assert _outcomes(out) == [('open the drawer', 'failed', 1)]
     assert loop.instruction == 'pick up the cup' and loop.queued is None
+
+
+def test_a_robot_that_stops_answering_fails_the_instruction_naming_why():
+    loop = _loop()
+    assert loop.robot_gone('no /joint_states for 5.2 s', 0.0) == []               # idle
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    stamp = loop.step(0.1, 1)[1].msg.header.stamp
+    out = loop.robot_gone('no /joint_states for 5.2 s', 6.0)
+    assert _texts(out, 'error') == ["instruction 'open the drawer': no /joint_states for 5.2 s"]
+    assert _outcomes(out) == [('open the drawer', 'failed', 1)]
+    assert loop.instruction is None and loop.on_result(_result(stamp), 7.0) == []
 
 
 def test_a_refused_instruction_leaves_the_running_one_alone():

@@ -1,5 +1,6 @@
 """RK-Diffuser: kinematics, data preparation, networks, diffusion, refinement, checkpoints, training CLI."""
 
+import os
 import subprocess
 import sys
 
@@ -350,7 +351,16 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     assert again.returncode == 0 and 'resuming from' in again.stdout
     other = subprocess.run([*base, '--steps', '4'], text=True, capture_output=True, timeout=300)
     assert other.returncode != 0 and 'another configuration' in other.stderr
-    (tmp_path / 'rkd.pt.resume').unlink()
+    resume = tmp_path / 'rkd.pt.resume'
+    kept = resume.read_bytes()
+    for damaged in (os.urandom(3000), kept[:len(kept) // 2]):
+        resume.write_bytes(damaged)
+        refused = subprocess.run([*base, '--steps', '2'], text=True, capture_output=True, timeout=300)
+        assert refused.returncode == 1 and refused.stderr.strip().splitlines()[-1] == (
+            f'hdp train low-level: {resume} is not a readable checkpoint (not a loadable torch file: '
+            'truncated, damaged or of another format)'), refused.stderr
+        assert 'Traceback' not in refused.stderr and 'weights_only' not in refused.stderr
+    resume.unlink()
     fresh = subprocess.run([*base, '--steps', '4'], text=True, capture_output=True, timeout=300)
     assert fresh.returncode == 0 and checkpoint.read(out)['training']['step'] == 4
     tuned = tmp_path / 'tuned.pt'

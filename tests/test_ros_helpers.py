@@ -70,3 +70,21 @@ def test_a_node_listens_on_loopback_only(ros_domain):
         sub.terminate()
         finish(sub)
     assert addresses and set(addresses) == {'127.0.0.1'}, addresses
+
+
+def test_liveness_names_silent_joint_states_and_a_clock_that_stands_still():
+    from hdp_msgs_py.liveness import Liveness
+    live = Liveness(timeout_s=2.0)
+    assert live.problem(wall_s=0.0, clock_s=10.0) is None          # nothing heard yet: not judged
+    live.heard(1.0)
+    assert live.problem(2.5, 11.0) is None
+    assert live.problem(3.5, 12.0).startswith('no /joint_states for 2.5 s (wall clock)')
+    live.heard(4.0)
+    assert live.problem(5.0, 12.0) is None                          # the clock last moved at 3.5
+    live.heard(6.0)
+    assert live.problem(6.0, 12.0).startswith("the node's clock has not moved for 2.5 s")
+    assert live.problem(6.1, 12.1) is None
+    live.excuse(20.0)                                               # busy planning from 6.1 to 20.0
+    assert live.problem(20.5, 12.1) is None and live.problem(22.1, 12.1) is not None
+    with pytest.raises(ValueError):
+        Liveness(0.0)

@@ -40,13 +40,18 @@ def test_bridge_node_end_to_end(ros_domain):
     assert 'rejected arm trajectory' in status and 'above its limit' in status
     assert "unknown: ['elbow']" in status
     assert "rejected reset: unknown task 'make_tea'" in status
+    assert 'rejected reset: open_drawer has variations 0..2, got 999' in status, status
+    assert facts['success_reports_after_bad_variation'] >= 3            # 2 Hz, still running
+    assert facts['last_episode']['seed'] == 5                           # the old episode stands
     assert facts['success_reports'] > 0
     assert node.returncode == 0, node_err
 
 
 def test_reset_requests_are_validated():
     assert parse_reset('{"task": "open_box", "seed": 4}') == {'task': 'open_box', 'seed': 4}
-    for bad in ('open_box', '{"task": "open_box", "seed": -1}', '{"task": "open_box", "colour": 1}', '[]'):
+    assert parse_reset('{"task": "open_drawer", "seed": 4, "variation": 2}')['variation'] == 2
+    for bad in ('open_box', '{"task": "open_box", "seed": -1}', '{"task": "open_box", "colour": 1}', '[]',
+                '{"task": "open_drawer", "seed": 4, "variation": 3}', '{"task": "open_box", "variation": 1}'):
         with pytest.raises(ValueError):
             parse_reset(bad)
 
@@ -72,3 +77,13 @@ def test_camera_selections_are_validated_and_keep_the_cameras_order():
     for bad in ('top', 'front,top', 'front,,side', 'front side', 'FRONT'):
         with pytest.raises(ValueError, match='unknown camera'):
             parse_cameras(bad, known)
+
+
+def test_a_bad_first_episode_stops_the_node_at_start_with_one_line(ros_domain):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
+    proc = subprocess.run([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                           '-p', 'task:=open_drawer', '-p', 'variation:=7'],
+                          env=env, text=True, capture_output=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert 'bad first episode: open_drawer has variations 0..2, got 7' in proc.stderr
+    assert 'Traceback' not in proc.stderr

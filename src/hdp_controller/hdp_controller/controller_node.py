@@ -5,18 +5,26 @@ parameters. A 20 Hz timer advances the segment. Planning runs inside that timer
 callback: the executor is single-threaded, so messages wait in their readers meanwhile
 (the latest joint state and camera frames are all the node keeps), and the arm is at rest
 while a segment is planned, so there is nothing to react to until the trajectory is out.
+A second timer runs on the steady clock: under use_sim_time the first one stops with the
+simulator, and the watchdog (hdp_msgs_py.liveness) then fails the segment, naming the cause.
 """
 
 
+import time
+
+from rclpy.clock import Clock, ClockType
+
 from hdp_motion import panda
 from hdp_msgs_py import ros, topics
+from hdp_msgs_py.liveness import Liveness
 from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
 
-from .controller_logic import SegmentController
+from .controller_logic import REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, SegmentController
 from .policy import METHODS, load_policy
 from .trajectory import VELOCITY_SCALE
 
 _STEP_S = 0.05
+_WATCH_S = 0.5
 _CAMERA = 'front'              # RK-Diffuser sees the front camera only, as in training
 
 
@@ -26,7 +34,10 @@ class ControllerNode(ros.Node):
         'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser.pt ($HDP_MODELS_DIR)"),
         'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
         'segment_timeout_s': (10.0, 's after the trajectory ends before the segment has failed'),
+        'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before a segment fails'),
         'velocity_scale': (VELOCITY_SCALE, "fraction of the Panda's velocity limits, (0, 1]"),
+        'reach_tolerance_m': (REACH_TOLERANCE_M, 'a plan ending farther from its NBP is refused (m)'),
+        'reach_tolerance_deg': (REACH_TOLERANCE_DEG, 'a plan ending turned farther from its NBP is refused (deg)'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
     }
 
@@ -37,8 +48,9 @@ class ControllerNode(ros.Node):
             raise ros.StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
         if not 0.0 < p['velocity_scale'] <= 1.0:
             raise ros.StartupError(f"parameter 'velocity_scale' must be in (0, 1], got {p['velocity_scale']}")
-        if not p['segment_timeout_s'] > 0.0:
-            raise ros.StartupError(f"parameter 'segment_timeout_s' must be > 0, got {p['segment_timeout_s']}")
+        for name in ('segment_timeout_s', 'state_timeout_s', 'reach_tolerance_m', 'reach_tolerance_deg'):
+            if not p[name] > 0.0:
+                raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         try:
             policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'])
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
@@ -47,7 +59,8 @@ class ControllerNode(ros.Node):
         self.logic = SegmentController(
             policy, needs_points=p['method'] != 'planner', velocity_scale=p['velocity_scale'],
             segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
-            finger_joints=tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS))
+            finger_joints=tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS),
+            reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']))
 
         self.status = ros.Status(self)
         self._outputs = {
@@ -58,18 +71,36 @@ class ControllerNode(ros.Node):
         self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
         self.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
                                  lambda m: self._send(self.logic.on_gripper_goal(m)), topics.COMMAND_QOS)
-        self.create_subscription(JointState, topics.JOINT_STATES, self.logic.on_joint_state, topics.COMMAND_QOS)
+        self.liveness = Liveness(p['state_timeout_s'])
+        self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
         self.create_subscription(Image, topics.depth_image(_CAMERA),
                                  lambda m: setattr(self.logic, 'depth', m), topics.SENSOR_QOS)
         self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
                                  lambda m: setattr(self.logic, 'info', m), topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.LATCHED_QOS)
-        self.create_timer(_STEP_S, lambda: self._send(self.logic.step(self._now())))
+        self.create_timer(_STEP_S, self._step)
+        # On the wall clock: under use_sim_time the timer above stops with the simulator.
+        self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
         sampler = f" ({p['sampler']} sampler)" if p['method'] != 'planner' else ''
         self.status.info(f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']}")
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
+
+    def _step(self):
+        started = time.monotonic()
+        self._send(self.logic.step(self._now()))
+        if time.monotonic() - started > _WATCH_S:      # it planned: no message was taken meanwhile
+            self.liveness.excuse(time.monotonic())
+
+    def _on_joint_state(self, msg):
+        self.liveness.heard(time.monotonic())
+        self.logic.on_joint_state(msg)
+
+    def _watch(self):
+        problem = self.liveness.problem(time.monotonic(), self._now())
+        if problem is not None:
+            self._send(self.logic.robot_gone(problem))
 
     def _on_nbp(self, msg):
         self._send(self.logic.on_nbp(msg, self._now()))

@@ -18,6 +18,7 @@ from diffusers.optimization import get_cosine_schedule_with_warmup
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
+from hdp_msgs_py import checkpoints
 from hdp_msgs_py.episodes import union_of_seeds
 
 from . import checkpoint
@@ -56,6 +57,8 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     # Tiny gradients in the Mish/GELU backward turn denormal after warm-up and
     # made CPU steps ~15x slower; flushing them to zero costs no accuracy.
     torch.set_flush_denormal(True)
+    # The resume file is read (and refused when damaged or of another run) before the data.
+    state = checkpoint.read_resume(resume_path) if resume_path.is_file() else None
     all_segments = load_segments(data_dir, model_config.n_points, cache_dir)
     segs = all_segments.moving()
     log(f'{len(all_segments) - len(segs)} of {len(all_segments)} segments dropped: the arm does not move in them')
@@ -66,19 +69,22 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     optimizer = torch.optim.AdamW(model.parameters(), lr=train_config.lr, weight_decay=train_config.weight_decay)
     schedule = get_cosine_schedule_with_warmup(optimizer, train_config.warmup_steps, train_config.steps)
     step, elapsed = 0, 0.0
-    if resume_path.is_file():
-        state = checkpoint.read_resume(resume_path)    # on the CPU: the RNG state must stay there
+    if state is not None:                               # on the CPU: the RNG state must stay there
         saved = (state['model_config'], state['train_config'], state.get('init'))
         wanted = (dataclasses.asdict(model_config), dataclasses.asdict(train_config), init_info)
         if any(_plain(a) != _plain(b) for a, b in zip(saved, wanted)):
-            raise ValueError(f'{resume_path} was written with another configuration; '
-                             'delete it or pass the same --config/--steps/--init to resume')
-        model.load_state_dict(state['raw_model'])
-        ema.load_state_dict(state['ema'])
-        optimizer.load_state_dict(state['optimizer'])
-        schedule.load_state_dict(state['schedule'])
+            raise checkpoint.CheckpointError(f'{resume_path} was written with another configuration; '
+                                             'delete it or pass the same --config/--steps/--init to resume')
+        checkpoints.load_weights(resume_path, model, state['raw_model'])
+        try:
+            ema.load_state_dict(state['ema'])
+            optimizer.load_state_dict(state['optimizer'])
+            schedule.load_state_dict(state['schedule'])
+            torch.set_rng_state(state['torch_rng'])
+        except (KeyError, TypeError, ValueError, RuntimeError) as err:
+            raise checkpoint.CheckpointError(f'{resume_path}: a damaged training state '
+                                             f'({type(err).__name__} restoring it)') from None
         step, elapsed = state['step'], state['elapsed_s']
-        torch.set_rng_state(state['torch_rng'])
         log(f'resuming from {resume_path} at step {step}')
     log(f'{len(segs)} segments from {len(np.unique(np.char.add(segs.task, segs.seed.astype(str))))} episodes; '
         f'{parameter_count(model) / 1e6:.2f} M parameters')

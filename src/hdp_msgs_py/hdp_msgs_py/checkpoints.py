@@ -30,8 +30,9 @@ from pathlib import Path
 MAX_BYTES = 512 * 1024 ** 2
 PARTIAL_SUFFIX = '.partial'
 # What torch.load raises for a truncated, damaged or hostile file (its own messages
-# suggest weights_only=False, which must never be followed for a checkpoint).
-_UNREADABLE = (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile)
+# suggest weights_only=False, which must never be followed for a checkpoint). OSError: a zip
+# cut short after its header ("[Errno 22] Invalid argument" from torch's file reader).
+_UNREADABLE = (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, OSError, zipfile.BadZipFile)
 
 
 class CheckpointError(ValueError):

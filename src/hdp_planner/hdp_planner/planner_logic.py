@@ -198,7 +198,7 @@ class PlannerLoop:
         line = (f'segment {segment.index}: pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
                 f'{"open" if segment.gripper_open else "close"} -> {msg.frame_id} in {now_s - segment.sent_s:.1f} s')
         if msg.frame_id != topics.SEGMENT_DONE:
-            return [Out('error', line)] + self._stop(f'segment {segment.index} failed', now_s, 'failed')
+            return [Out('error', line)] + self._stop(f'segment {segment.index} {msg.frame_id}', now_s, 'failed')
         self.gripper_open = segment.gripper_open
         if self.queued is not None:
             return [Out('info', line)] + self._stop('replaced by a new instruction', now_s, 'replaced')
@@ -230,6 +230,13 @@ class PlannerLoop:
             return self._stop(f'{subject}timed out after {self.camera_timeout_s:.1f} s '
                               f'(no fresh {", ".join(waiting_for)})', now_s, 'failed')
         return self._predict_and_send(now_s, now_ns)
+
+    def robot_gone(self, why: str, now_s: float) -> list[Out]:
+        """The robot stopped answering (Liveness.problem): the running instruction fails, naming why."""
+        if self.instruction is None:
+            return []
+        self.segment, self.queued = None, None
+        return self._stop(why, now_s, 'failed')
 
     def _result_timed_out(self, now_s: float) -> list[Out]:
         """Report the missing result and go on: re-observe and send a fresh NBP while the budget lasts.

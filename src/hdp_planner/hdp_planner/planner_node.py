@@ -2,20 +2,27 @@
 
 The logic is planner_logic.PlannerLoop; this node wires it to topics and parameters. A
 10 Hz timer advances the loop, and the agent predicts inside that callback (a few tens of
-milliseconds on a CPU core). Timeouts run on the node's clock: the graph's YAML keeps this
-node on wall time, so a dead simulator (whose /clock stops with it) is reported, not waited for.
+milliseconds on a CPU core). Timeouts run on the node's clock (the graph's YAML keeps this
+node on wall time); a second timer on the steady clock fails the running instruction when
+/joint_states stop or the node's clock stands still (hdp_msgs_py.liveness), so a dead simulator
+or robot driver is named within state_timeout_s instead of being blamed on the controller.
 """
 
 import functools
+import time
+
+from rclpy.clock import Clock, ClockType
 
 from hdp_motion import panda
 from hdp_msgs_py import ros, topics
+from hdp_msgs_py.liveness import Liveness
 from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, PoseStamped, String, TFMessage
 
 from .agent import NextBestPoseAgent
 from .planner_logic import Observations, PlannerLoop, default_checkpoint
 
 _STEP_S = 0.1
+_WATCH_S = 0.5
 
 
 class PlannerNode(ros.Node):
@@ -24,6 +31,7 @@ class PlannerNode(ros.Node):
         'max_segments': (8, 'segments per instruction before it has failed'),
         'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
         'result_timeout_s': (60.0, 's to wait for a segment result before the next segment'),
+        'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before an instruction fails'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
     }
 
@@ -32,7 +40,7 @@ class PlannerNode(ros.Node):
         p = self.declare_parameter_table()
         if p['max_segments'] < 1:
             raise ros.StartupError(f"parameter 'max_segments' must be >= 1, got {p['max_segments']}")
-        for name in ('camera_timeout_s', 'result_timeout_s'):
+        for name in ('camera_timeout_s', 'result_timeout_s', 'state_timeout_s'):
             if not p[name] > 0:
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         checkpoint = p['checkpoint'] or default_checkpoint()
@@ -61,19 +69,34 @@ class PlannerNode(ros.Node):
                     (CameraInfo, topics.camera_info(camera), observations.on_info)):
                 self.create_subscription(msg_type, topic, functools.partial(callback, camera), topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, observations.on_tf_static, topics.LATCHED_QOS)
-        self.create_subscription(JointState, topics.JOINT_STATES, observations.on_joint_state, topics.COMMAND_QOS)
+        self.liveness = Liveness(p['state_timeout_s'])
+        self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
         self.create_subscription(Header, topics.SEGMENT_RESULT,
                                  lambda m: self._send(self.loop.on_result(m, self._now())), topics.COMMAND_QOS)
         self.create_subscription(Bool, topics.SIM_SUCCESS, lambda m: self.loop.on_success(m.data), 10)
         self.create_timer(_STEP_S, self._step)
+        # On the wall clock, in case this node runs on sim time and the simulator dies.
+        self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.status.info(f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction')
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def _on_joint_state(self, msg):
+        self.liveness.heard(time.monotonic())
+        self.loop.observations.on_joint_state(msg)
+
+    def _watch(self):
+        problem = self.liveness.problem(time.monotonic(), self._now())
+        if problem is not None:
+            self._send(self.loop.robot_gone(problem, self._now()))
+
     def _step(self):
+        started = time.monotonic()
         now = self.get_clock().now().nanoseconds
         self._send(self.loop.step(now * 1e-9, now))
+        if time.monotonic() - started > _WATCH_S:      # a slow prediction: no message was taken meanwhile
+            self.liveness.excuse(time.monotonic())
 
     def _send(self, outputs):
         for kind, msg in outputs:

@@ -125,7 +125,11 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
             raise checkpoint.CheckpointError(f'{out} was trained with another config ({"; ".join(changed)}); '
                                              'choose another --out or the same options')
         model.load_state_dict(checkpoint.build_model(stored, out).state_dict())
-        optimizer.load_state_dict(stored['optimizer'])
+        try:
+            optimizer.load_state_dict(stored['optimizer'])
+        except (KeyError, TypeError, ValueError, RuntimeError) as err:
+            raise checkpoint.CheckpointError(f'{out}: a damaged optimiser state ({type(err).__name__} '
+                                             'restoring it)') from None
         step, metrics = stored['step'], stored['metrics']
         log(f'continuing {out} from step {step}')
     per_task = ', '.join(f'{t}: {(dataset.tasks == t).sum()}' for t in np.unique(dataset.tasks))

@@ -12,7 +12,7 @@ import json
 import numpy as np
 
 from hdp_motion import panda
-from hdp_msgs_py import conversions
+from hdp_msgs_py import conversions, instructions
 from hdp_msgs_py.msg import Clock, Header, TFMessage
 
 from .cameras import default_cameras
@@ -36,7 +36,16 @@ def parse_reset(text: str) -> dict:
     for key in ('seed', 'variation'):
         if key in request and (type(request[key]) is not int or request[key] < 0):
             raise ValueError(f'{key} must be a non-negative integer')
+    if 'variation' in request:
+        check_variation(request['task'], request['variation'])
     return request
+
+
+def check_variation(task: str, variation: int) -> None:
+    """ValueError unless ``task`` has ``variation``: checked before a reset touches the scene."""
+    count = len(instructions.TASKS[task].variations)
+    if not 0 <= variation < count:
+        raise ValueError(f'{task} has variations 0..{count - 1}, got {variation}')
 
 
 def parse_cameras(text: str, known) -> tuple[str, ...]:
@@ -71,7 +80,12 @@ class SimBridge:
         self.trajectory = None
 
     def reset(self, task_name: str, seed: int, variation: int | None = None) -> dict:
-        """A new episode; returns {task, seed, variation, instruction}."""
+        """A new episode; returns {task, seed, variation, instruction}. A ValueError leaves the
+        running episode as it was."""
+        if task_name not in TASKS:
+            raise ValueError(f'unknown task {task_name!r}; tasks: {", ".join(TASKS)}')
+        if variation is not None:
+            check_variation(task_name, variation)
         task, rng, variation = reachable_scene(self.world, task_name, seed, variation)
         self.task, self.trajectory = task, None
         self.episode = {'task': task_name, 'seed': seed, 'variation': variation,

@@ -33,6 +33,11 @@ class SimBridgeNode(ros.Node):
     def __init__(self):
         super().__init__('sim_bridge_node')
         p = self.declare_parameter_table()
+        first = {'task': p['task'], 'seed': p['seed'], **({'variation': p['variation']} if p['variation'] >= 0 else {})}
+        try:
+            parse_reset(json.dumps(first))
+        except ValueError as err:
+            raise ros.StartupError(f'bad first episode: {err}') from None
         self._rtf = p['real_time_factor']
         self._joint_every = max(1, round(1.0 / (p['joint_state_rate_hz'] * TIME_STEP)))
         self._camera_every = round(1.0 / (p['camera_rate_hz'] * TIME_STEP)) if p['camera_rate_hz'] > 0 else 0

@@ -11,6 +11,8 @@ import argparse
 import sys
 from importlib.metadata import entry_points
 
+from ..checkpoints import CheckpointError
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='hdp', description='Hierarchical Diffusion Policy on ROS 2.')
@@ -27,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
         configure = entry.load()
         doc = (configure.__doc__ or '').strip().replace('%', '%%')     # argparse formats help with %
         sub = groups[path[:-1]].add_parser(path[-1], help=doc.split('\n')[0], description=doc)
+        sub.set_defaults(command=' '.join(path))
         configure(sub)
     return parser
 
@@ -41,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except CheckpointError as err:      # a damaged or foreign checkpoint/resume file: one line naming it
+        print(f'hdp {getattr(args, "command", "")}: {err}', file=sys.stderr)
+        return 1
 
 
 if __name__ == '__main__':
