@@ -420,14 +420,50 @@ def test_hdp_launch_starts_the_graph_prefixes_output_and_stops_on_sigint(ros_dom
     assert '[launch] SIGINT: stopping the nodes' in text
 
 
-def test_hdp_launch_exits_non_zero_when_a_node_dies(ros_domain, tmp_path):
+def test_hdp_launch_exit_on_node_exit_stops_the_graph_when_a_node_dies(ros_domain, tmp_path):
     params = _graph_yaml(tmp_path, tmp_path / 'missing.pt')
-    launch = _launch(ros_domain, params, '--nodes', 'planner_node,controller_node',
+    launch = _launch(ros_domain, params, '--nodes', 'planner_node,controller_node', '--exit-on-node-exit',
                      '-p', 'controller_node:method:=planner')
     out, _ = launch.communicate(timeout=60)
     assert launch.returncode == 1, out
     assert '[planner_node] [ERROR] [planner_node]: cannot load the next-best-pose agent' in out
     assert '[launch] planner_node exited with code 1; stopping the other nodes' in out
+
+
+def _wait_for(lines, proc, predicate, seconds: float) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and proc.poll() is None and not predicate('\n'.join(lines)):
+        time.sleep(0.2)
+    return predicate('\n'.join(lines))
+
+
+def test_hdp_launch_keeps_the_other_nodes_by_default_and_respawns_on_request(ros_domain, tmp_path):
+    """As ros2 launch: a node that dies leaves the rest running; --respawn starts it again."""
+    params = _graph_yaml(tmp_path, tmp_path / 'missing.pt')
+    launch = _launch(ros_domain, params, '--nodes', 'planner_node,controller_node',
+                     '-p', 'controller_node:method:=planner')
+    lines, reader = _collect_lines(launch)
+    assert _wait_for(lines, launch, lambda text: '[launch] planner_node exited with code 1; 1 node(s) keep running'
+                     in text and 'ready: method planner' in text, 90), '\n'.join(lines)
+    assert launch.poll() is None                      # the controller still runs
+    launch.send_signal(signal.SIGINT)
+    launch.wait(timeout=40)
+    reader.join(timeout=5)
+    assert launch.returncode == 1, '\n'.join(lines)       # a node failed
+    assert "[launch] nodes that did not exit cleanly: {'planner_node': 1}" in lines, '\n'.join(lines)
+
+    launch = _launch(ros_domain, params, '--nodes', 'planner_node', '--respawn', 'planner_node',
+                     '--respawn-delay', '0.2')
+    lines, reader = _collect_lines(launch)
+    assert _wait_for(lines, launch, lambda text: text.count('[launch] started planner_node') >= 3, 120), \
+        '\n'.join(lines)
+    launch.send_signal(signal.SIGINT)
+    launch.wait(timeout=40)
+    reader.join(timeout=5)
+    assert '[launch] planner_node exited with code 1; respawning it in 0.2 s' in lines
+    bad = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--respawn', 'planner_node',
+                          '--nodes', 'controller_node'], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--respawn names node(s) not started: ['planner_node']" in bad.stderr
 
 
 # --- helper processes -------------------------------------------------------------------------------

@@ -2,8 +2,11 @@
 
 sim_bridge_node, planner_node and controller_node each run in a process of their own with
 their section of config/hdp_graph.yaml. Output lines are prefixed with the node's name;
-SIGINT/SIGTERM go on to every node; if one node exits, the others are stopped and the
-command exits non-zero.
+SIGINT/SIGTERM go on to every node. What happens when a node exits is ros2 launch's choice,
+per node: by default the others keep running (the command ends when every node has exited);
+`--exit-on-node-exit` stops the graph (ros2 launch's on_exit=Shutdown()); `--respawn NODES`
+restarts those nodes after `--respawn-delay` seconds (respawn=True, respawn_delay). The exit
+code is non-zero when a node exited with an error.
 """
 
 from __future__ import annotations
@@ -14,11 +17,13 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 # node name -> package; the executable is the node's name (hdp_graph.launch.py reads this too).
 NODES = {'sim_bridge_node': 'hdp_sim_bridge', 'planner_node': 'hdp_planner', 'controller_node': 'hdp_controller'}
 STOP_GRACE_S = 15.0            # for a node to exit after SIGINT, before SIGTERM and then SIGKILL
+ON_EXIT = ('keep', 'shutdown', 'respawn')    # what a node's exit does to the graph
 
 
 def default_params_file() -> Path:
@@ -36,7 +41,21 @@ def configure(parser) -> None:
                              'planner_node,controller_node for a real robot)')
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
                         help='override one parameter, e.g. controller_node:method:=planner (repeatable)')
+    parser.add_argument('--exit-on-node-exit', action='store_true',
+                        help='stop every node when one exits (default: the others keep running)')
+    parser.add_argument('--respawn', default='', metavar='NODES',
+                        help='comma-separated nodes to start again whenever they exit')
+    parser.add_argument('--respawn-delay', type=float, default=1.0, metavar='S',
+                        help='seconds before a respawn (default 1.0)')
     parser.set_defaults(func=run)
+
+
+def exit_policies(nodes, exit_on_node_exit: bool, respawn) -> dict[str, str]:
+    """node -> one of ON_EXIT; ValueError for a respawned node that is not started."""
+    stray = [n for n in respawn if n not in nodes]
+    if stray:
+        raise ValueError(f'--respawn names node(s) not started: {stray}; started: {", ".join(nodes)}')
+    return {n: 'respawn' if n in respawn else 'shutdown' if exit_on_node_exit else 'keep' for n in nodes}
 
 
 def node_commands(nodes: list[str], params_file: Path, overrides: list[str]) -> dict[str, list[str]]:
@@ -87,16 +106,22 @@ def running_nodes(commands: dict[str, list[str]], output, say, env: dict | None 
     Each node gets a session of its own: a terminal's Ctrl-C reaches only the caller, which
     passes it on once, on leaving (stop_nodes), however it leaves.
     """
-    env = dict(os.environ if env is None else env, PYTHONUNBUFFERED='1')
     procs = {}
     try:
         for name, command in commands.items():
-            procs[name] = subprocess.Popen(command, stdout=output(name), stderr=subprocess.STDOUT, text=True,
-                                           env=env, start_new_session=True)
-            say(f'started {name} (pid {procs[name].pid})')
+            procs[name] = start_node(name, command, output, say, env)
         yield procs
     finally:
         stop_nodes(procs, say)
+
+
+def start_node(name: str, command: list[str], output, say, env: dict | None = None) -> subprocess.Popen:
+    """One node process in a session of its own (see running_nodes)."""
+    env = dict(os.environ if env is None else env, PYTHONUNBUFFERED='1')
+    proc = subprocess.Popen(command, stdout=output(name), stderr=subprocess.STDOUT, text=True, env=env,
+                            start_new_session=True)
+    say(f'started {name} (pid {proc.pid})')
+    return proc
 
 
 def run(args) -> int:
@@ -105,7 +130,12 @@ def run(args) -> int:
         print(f'hdp launch: no parameter file {params_file}', file=sys.stderr)
         return 2
     try:
-        commands = node_commands([n.strip() for n in args.nodes.split(',') if n.strip()], params_file, args.param)
+        nodes = [n.strip() for n in args.nodes.split(',') if n.strip()]
+        commands = node_commands(nodes, params_file, args.param)
+        policies = exit_policies(nodes, args.exit_on_node_exit, [n.strip() for n in args.respawn.split(',')
+                                                                  if n.strip()])
+        if args.respawn_delay < 0:
+            raise ValueError(f'--respawn-delay must be >= 0, got {args.respawn_delay}')
     except ValueError as err:
         print(f'hdp launch: {err}', file=sys.stderr)
         return 2
@@ -123,29 +153,49 @@ def run(args) -> int:
         requested.append(signal.Signals(signum).name)
         stop.set()
 
+    def relay(name, proc):
+        relays.append(threading.Thread(target=_relay, args=(name, proc.stdout, lock), daemon=True))
+        relays[-1].start()
+
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    relays = []
+    relays, exited, shutdown_by = [], {}, None
     try:
         with running_nodes(commands, lambda name: subprocess.PIPE, say) as procs:
             for name, proc in procs.items():
-                relays.append(threading.Thread(target=_relay, args=(name, proc.stdout, lock), daemon=True))
-                relays[-1].start()
-            died = None
-            while died is None and not stop.wait(0.2):
-                died = next((name for name, p in procs.items() if p.poll() is not None), None)
-            if died is not None:
-                say(f'{died} exited with code {procs[died].returncode}; stopping the other nodes')
-            else:
+                relay(name, proc)
+            respawn_at: dict[str, float] = {}
+            while shutdown_by is None and len(exited) < len(procs) and not stop.wait(0.2):
+                for name, proc in procs.items():
+                    if name in exited or name in respawn_at or proc.poll() is None:
+                        continue
+                    code, policy = proc.returncode, policies[name]
+                    if policy == 'respawn':
+                        say(f'{name} exited with code {code}; respawning it in {args.respawn_delay:.1f} s')
+                        respawn_at[name] = time.monotonic() + args.respawn_delay
+                    elif policy == 'shutdown':
+                        say(f'{name} exited with code {code}; stopping the other nodes')
+                        shutdown_by = name
+                        break
+                    else:
+                        exited[name] = code
+                        running = len(procs) - len(exited)
+                        say(f'{name} exited with code {code}; ' + (f'{running} node(s) keep running' if running
+                                                                    else 'every node has exited'))
+                for name in [n for n, due in respawn_at.items() if time.monotonic() >= due]:
+                    del respawn_at[name]
+                    procs[name] = start_node(name, commands[name], lambda _: subprocess.PIPE, say)
+                    relay(name, procs[name])
+            if requested:
                 say(f'{requested[0]}: stopping the nodes')
     finally:
-        for relay in relays:
-            relay.join(timeout=2.0)
+        for thread in relays:
+            thread.join(timeout=2.0)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    codes = {name: p.returncode for name, p in procs.items()}
-    if died is not None:
-        return codes[died] if codes[died] > 0 else 1
-    failed = {n: c for n, c in codes.items() if c != 0}
+    if shutdown_by is not None:
+        code = procs[shutdown_by].returncode
+        return code if code > 0 else 1
+    failed = {n: c for n, c in {**{n: p.returncode for n, p in procs.items()}, **exited}.items() if c != 0}
     if failed:
         say(f'nodes that did not exit cleanly: {failed}')
     return 1 if failed else 0
