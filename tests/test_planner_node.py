@@ -255,6 +255,21 @@ def test_a_robot_that_stops_answering_fails_the_instruction_naming_why():
     assert loop.instruction is None and loop.on_result(_result(stamp), 7.0) == []
 
 
+def test_an_instruction_the_agent_cannot_ground_is_refused_before_anything_moves():
+    loop = _loop(min_confidence=0.8)                          # FakeAgent: confidence 0.75
+    feed_frames(loop.observations, 1.0)
+    loop.on_instruction('open the drawer', 0.0)
+    out = loop.step(0.1, 1)
+    assert [k for k, _ in out] == ['error', 'outcome']        # no NBP, no gripper goal
+    assert _texts(out, 'error') == ["instruction 'open the drawer': refused: the agent cannot ground it (its first "
+                                    "next-best pose has confidence 0.75, below min_confidence 0.80)"]
+    assert _outcomes(out) == [('open the drawer', 'refused', 0)] and loop.instruction is None
+    confident = _loop(min_confidence=0.7)
+    feed_frames(confident.observations, 1.0)
+    confident.on_instruction('open the drawer', 0.0)
+    assert [k for k, _ in confident.step(0.1, 1)] == ['gripper_goal', 'nbp', 'info']
+
+
 def test_a_refused_instruction_leaves_the_running_one_alone():
     loop = _loop()
     loop.on_instruction('open the drawer', 0.0)

@@ -38,6 +38,7 @@ setup(
         'hdp.commands': [
             'launch = hdp_bringup.launch_cli:configure',
             'demo = hdp_bringup.demo.cli:configure',
+            'bench.soak = hdp_bringup.soak:configure',
         ],
     },
 )

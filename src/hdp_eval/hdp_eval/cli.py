@@ -109,8 +109,12 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--tasks', default='all', help='comma-separated task names or "all"')
     parser.add_argument('--episodes', type=int, default=10, help='episodes per task (default 10)')
     parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
-    parser.add_argument('--phrasings', default='seen', choices=('seen', 'heldout', 'both'),
-                        help='instructions from training phrasings, held-out ones, or both (default seen)')
+    parser.add_argument('--phrasings', default='seen',
+                        help='comma-separated: seen (training phrasings), heldout, nonsense (one word of the '
+                             'seen instruction kept, the rest made up); both = seen,heldout (default seen)')
+    parser.add_argument('--min-confidence', type=float, default=None,
+                        help="refuse an instruction whose first prediction is less confident "
+                             "(default: planner_node's min_confidence)")
     parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent.pt ($HDP_MODELS_DIR)')
     parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser.pt')
     parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
@@ -124,20 +128,22 @@ def configure_hierarchy(parser) -> None:
 def run_hierarchy(args) -> int:
     from hdp_controller.policy import load_policy
     from hdp_planner.agent import NextBestPoseAgent
-    from hdp_planner.planner_logic import default_checkpoint
+    from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, default_checkpoint
     from hdp_sim_bridge.tasks import TASKS
 
-    from .hierarchy_eval import AGENTS, evaluate, markdown_table
+    from .hierarchy_eval import AGENTS, PHRASINGS, evaluate, markdown_table
     agents, tasks = _names(args.agents, AGENTS, 'agent'), _names(args.tasks, TASKS, 'task')
+    phrasings = _names('seen,heldout' if args.phrasings == 'both' else args.phrasings, PHRASINGS, 'phrasing')
     if args.threads:
         import torch
         torch.set_num_threads(args.threads)
     agent_path = args.agent_checkpoint or default_checkpoint()
     agent = NextBestPoseAgent.from_checkpoint(agent_path)
     low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler) for name in agents}
-    phrasings = ('seen', 'heldout') if args.phrasings == 'both' else (args.phrasings,)
+    min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     try:
-        results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments)
+        results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments,
+                           min_confidence=min_confidence)
     except ValueError as err:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1

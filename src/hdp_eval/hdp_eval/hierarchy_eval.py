@@ -30,7 +30,10 @@ from .low_level_eval import check_seed_hygiene, execute_segment, world_scene
 from .observation import front_points, segment_request
 
 AGENTS = {'hdp': 'rkd', 'nbp_planner': 'planner', 'nbp_joint': 'joint'}
-PHRASINGS = ('seen', 'heldout')
+PHRASINGS = ('seen', 'heldout', 'nonsense')
+# Made-up words for 'nonsense' instructions: one word of the task's own instruction is kept, so
+# the planner's vocabulary check lets them through and only the agent's confidence can refuse.
+PSEUDO_WORDS = ('blick', 'zorf', 'quib', 'flom', 'trask', 'wunt', 'glimp', 'sprov', 'dax', 'vurl')
 MAX_SEGMENTS = 8
 
 
@@ -45,22 +48,39 @@ class HierarchyRecord:
     ik_error: bool = False
     failure: str | None = None
     segments: int = 0
+    confidences: list = dataclasses.field(default_factory=list)    # the agent's, per prediction
     predict_times: list = dataclasses.field(default_factory=list)
     plan_times: list = dataclasses.field(default_factory=list)
 
 
 def episode_instruction(task_name: str, seed: int, variation: int, phrasing: str) -> str:
-    """The instruction of one evaluation episode: a phrasing seen in training or a held-out one."""
-    phrasings = language.training_phrasings(task_name) if phrasing == 'seen' else language.heldout_phrasings(task_name)
-    return language.instruction(task_name, variation, phrasings, np.random.default_rng(seed))
+    """The instruction of one evaluation episode: a phrasing seen in training, a held-out one, or
+    'nonsense': the seen one with every word but one content word made up."""
+    if phrasing not in PHRASINGS:
+        raise ValueError(f'unknown phrasing {phrasing!r}; phrasings: {", ".join(PHRASINGS)}')
+    phrasings = language.heldout_phrasings(task_name) if phrasing == 'heldout' else language.training_phrasings(task_name)
+    text = language.instruction(task_name, variation, phrasings, np.random.default_rng(seed))
+    return nonsense(text, np.random.default_rng([seed, 1])) if phrasing == 'nonsense' else text
+
+
+def nonsense(text: str, rng: np.random.Generator) -> str:
+    """``text`` with one of its content words kept and every other word made up (PSEUDO_WORDS)."""
+    from hdp_planner.planner_logic import FILLER_WORDS
+    tokens = language.words(text)
+    content = [i for i, w in enumerate(tokens) if w not in FILLER_WORDS]
+    keep = int(rng.choice(content))
+    return ' '.join(w if i == keep else str(rng.choice(PSEUDO_WORDS)) for i, w in enumerate(tokens))
 
 
 def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing: str = 'seen',
-                max_segments: int = MAX_SEGMENTS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None
-                ) -> HierarchyRecord:
+                max_segments: int = MAX_SEGMENTS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None,
+                min_confidence: float = 0.0) -> HierarchyRecord:
+    """One closed-loop episode. min_confidence: as planner_node's parameter, a first prediction
+    below it refuses the instruction (failure 'refused: low confidence'), nothing moves."""
     if world is None:
         with PandaWorld() as own:
-            return run_episode(name, agent, low_level, task_name, seed, phrasing, max_segments, camera_size, own)
+            return run_episode(name, agent, low_level, task_name, seed, phrasing, max_segments, camera_size, own,
+                               min_confidence)
     task, _, variation = experts.reachable_scene(world, task_name, seed)
     record = HierarchyRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
     cameras = default_cameras(*camera_size)
@@ -72,6 +92,10 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
                             {c: cam.camera_to_world for c, cam in cameras.items()}, record.instruction,
                             (world.joint_positions(), world.gripper_commanded_open))
         record.predict_times.append(time.perf_counter() - started)
+        record.confidences.append(round(float(nbp.confidence), 4))
+        if record.segments == 0 and nbp.confidence < min_confidence:
+            record.failure = 'refused: low confidence'
+            return record
         request = segment_request(world, np.r_[nbp.xyz, nbp.quat], nbp.gripper_open,
                                   front_points(world, cameras['front'], N_POINTS, rng))
         started = time.perf_counter()
@@ -90,7 +114,7 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
 
 
 def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phrasings=('seen',),
-             max_segments: int = MAX_SEGMENTS, progress: bool = True) -> dict:
+             max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0) -> dict:
     """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates."""
     unknown = [t for t in tasks if t not in TASKS]
     if unknown or not tasks:
@@ -105,8 +129,9 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
     with PandaWorld() as world:
         for name, task, seed, phrasing in tqdm(jobs, desc='hierarchy episodes', unit='episode', disable=not progress):
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
-                                       world=world))
-    results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings), 'agents': {}}
+                                       world=world, min_confidence=min_confidence))
+    results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
+               'min_confidence': min_confidence, 'agents': {}}
     for name in low_levels:
         results['agents'][name] = {}
         for phrasing in phrasings:

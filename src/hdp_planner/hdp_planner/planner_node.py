@@ -19,7 +19,7 @@ from hdp_msgs_py.liveness import Liveness
 from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, PoseStamped, String, TFMessage
 
 from .agent import NextBestPoseAgent
-from .planner_logic import Observations, PlannerLoop, default_checkpoint
+from .planner_logic import DEFAULT_MIN_CONFIDENCE, Observations, PlannerLoop, default_checkpoint
 
 _STEP_S = 0.1
 _WATCH_S = 0.5
@@ -31,6 +31,7 @@ class PlannerNode(ros.Node):
         'max_segments': (8, 'segments per instruction before it has failed'),
         'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
         'result_timeout_s': (60.0, 's to wait for a segment result before the next segment'),
+        'min_confidence': (DEFAULT_MIN_CONFIDENCE, "an instruction whose first NBP is less confident is refused"),
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before an instruction fails'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
     }
@@ -43,6 +44,8 @@ class PlannerNode(ros.Node):
         for name in ('camera_timeout_s', 'result_timeout_s', 'state_timeout_s'):
             if not p[name] > 0:
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
+        if not 0.0 <= p['min_confidence'] < 1.0:
+            raise ros.StartupError(f"parameter 'min_confidence' must be in [0, 1), got {p['min_confidence']}")
         checkpoint = p['checkpoint'] or default_checkpoint()
         try:
             agent = NextBestPoseAgent.from_checkpoint(checkpoint)
@@ -52,7 +55,7 @@ class PlannerNode(ros.Node):
         observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
                                     tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS))
         self.loop = PlannerLoop(agent, agent.model.config.vocabulary, p['max_segments'], p['camera_timeout_s'],
-                                p['result_timeout_s'], observations)
+                                p['result_timeout_s'], observations, p['min_confidence'])
 
         self.status = ros.Status(self)
         self._outputs = {

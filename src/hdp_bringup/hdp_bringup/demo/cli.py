@@ -7,31 +7,25 @@ watcher.run_episode and writes what it saw.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import random
-import signal
 import sys
 import time
 from pathlib import Path
 
-import rclpy
-
-from hdp_msgs_py import ros
 from hdp_msgs_py.msg import String
 
-from ..launch_cli import NODES, default_params_file, node_commands, running_nodes
+from ..launch_cli import NODES, default_params_file, node_commands
 from .cpu import cpu_seconds, read_stats
 from .episode_log import segment_line
 from .figures import figures, format_figures
 from .media import write_episode_files
-from .watcher import DemoNode, GraphDown, Interrupted, Session, run_episode
+from .watcher import DemoNode, GraphDown, Interrupted, Session, run_episode, wait_for_graph, watched_graph
 
 METHODS = ('rkd', 'planner', 'pose_ik', 'joint')      # controller_node's `method` parameter
 SAMPLERS = ('ddim', 'ddpm')                            # controller_node's `sampler` parameter
 DEFAULT_SEED = 1000            # evaluation seeds start here, apart from every training seed
-STARTUP_TIMEOUT_S = 300.0      # three processes importing torch and loading checkpoints on a busy CPU
 SAFE_DOMAINS = range(1, 102)   # ROS_DOMAIN_IDs whose ports stay below Linux's ephemeral range
 
 
@@ -127,49 +121,30 @@ def run(args) -> int:
     say(f'ROS_DOMAIN_ID={domain} ' + ('(picked at random; set ROS_DOMAIN_ID to choose)' if picked
                                        else '(from the environment)'))
     say(f'node output: {logs}/<node>.log')
-
-    ros.init(args=[], domain_id=domain)
-    stop: list[str] = []
-
-    def on_signal(signum, frame):
-        stop.append(signal.Signals(signum).name)     # the first ends the demo; later ones wait for the stop
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for name in NODES:
+        (logs / f'{name}.log').unlink(missing_ok=True)      # this run's output only
     records, logs_by_episode, code = [], [], 1
     started = time.monotonic()
-    node = DemoNode(lambda segment: say(segment_line(segment)))
     try:
-        with contextlib.ExitStack() as files:
-            def output(name):
-                return files.enter_context(open(logs / f'{name}.log', 'w'))
-            env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-            with running_nodes(commands, output, say, env) as procs:
-                code = _run(Session(node, procs, stop), args, procs, records, logs_by_episode, started, say)
+        with watched_graph(commands, logs, domain, lambda: DemoNode(lambda s: say(segment_line(s))), say) as session:
+            code = _run(session, args, records, logs_by_episode, started, say)
     except Interrupted as why:
         say(f'{why}: stopped the nodes')
         code = 130
     except GraphDown as why:
         say(f'{why}; stopped the nodes (see {logs}/)')
         code = 1
-    finally:
-        for sig, handler in previous.items():       # the runtime's, which shutdown replaces in turn
-            signal.signal(sig, handler)
-        node.destroy_node()
-        rclpy.try_shutdown()
     if records:
         _write_outputs(args, domain, picked, records, logs_by_episode, started, say, json_out)
     return code
 
 
-def _run(session: Session, args, procs, records, logs_by_episode, started, say) -> int:
+def _run(session: Session, args, records, logs_by_episode, started, say) -> int:
     """Wait for the graph, run the episodes; the exit code (2: the planner refused the instruction)."""
     node = session.node
-    say('waiting for the nodes to load their models and connect ...')
-    if not session.spin_until(lambda: not node.not_connected(), STARTUP_TIMEOUT_S):
-        raise GraphDown(f'the graph did not connect within {STARTUP_TIMEOUT_S:.0f} s '
-                        f'(missing: {", ".join(node.not_connected())})')
-    say(f'graph up after {time.monotonic() - started:.1f} s')
+    wait_for_graph(session, say, started)
     ticks = os.sysconf('SC_CLK_TCK')
-    pids = {name: proc.pid for name, proc in procs.items()}
+    pids = {name: proc.pid for name, proc in session.procs.items()}
 
     def cpu_sample():
         return cpu_seconds(pids, read_stats(), ticks)

@@ -6,8 +6,12 @@ never holds the graph back, and learns how each instruction ended from /hdp/outc
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import rclpy
@@ -17,12 +21,13 @@ from hdp_msgs_py import conversions, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
 from hdp_msgs_py.outcome import Outcome
 
-from ..launch_cli import NODES
+from ..launch_cli import NODES, running_nodes
 from .cpu import cpu_usage
 from .episode_log import EpisodeLog, stamp_ns
 from .media import GIF_WIDTH
 
 SCENE_TIMEOUT_S = 60.0         # for a (reset) scene to show a frame and its success report
+STARTUP_TIMEOUT_S = 300.0      # three processes importing torch and loading checkpoints on a busy CPU
 
 
 class Interrupted(Exception):
@@ -159,6 +164,41 @@ class Session:
                 return False
             rclpy.spin_once(self.node, timeout_sec=0.1)
         return True
+
+
+@contextlib.contextmanager
+def watched_graph(commands: dict, logs: Path, domain: int, make_node, say):
+    """The node processes (name -> command line) running on ``domain`` with their output in
+    logs/<node>.log, and a Session of ``make_node()`` watching them. SIGINT and SIGTERM end any
+    wait with Interrupted; the nodes are stopped and rclpy shut down on leaving, however."""
+    ros.init(args=[], domain_id=domain)
+    stop: list[str] = []
+
+    def on_signal(signum, frame):
+        stop.append(signal.Signals(signum).name)     # the first ends the wait; later ones wait for the stop
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    node = make_node()
+    try:
+        with contextlib.ExitStack() as files:
+            def output(name):
+                return files.enter_context(open(logs / f'{name}.log', 'a'))
+            with running_nodes(commands, output, say, dict(os.environ, ROS_DOMAIN_ID=str(domain))) as procs:
+                yield Session(node, procs, stop)
+    finally:
+        for sig, handler in previous.items():       # the runtime's, which shutdown replaces in turn
+            signal.signal(sig, handler)
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def wait_for_graph(session: Session, say, started: float) -> None:
+    """Until every node is connected to the watcher (GraphDown after STARTUP_TIMEOUT_S)."""
+    node = session.node
+    say('waiting for the nodes to load their models and connect ...')
+    if not session.spin_until(lambda: not node.not_connected(), STARTUP_TIMEOUT_S):
+        raise GraphDown(f'the graph did not connect within {STARTUP_TIMEOUT_S:.0f} s '
+                        f'(missing: {", ".join(node.not_connected())})')
+    say(f'graph up after {time.monotonic() - started:.1f} s')
 
 
 def run_episode(session: Session, seed: int, instruction: str | None, timeout_s: float,
