@@ -52,8 +52,8 @@ def gripper_goal_msg(is_open: bool, stamp_sec: int = 1, width=None):
     return JointState(header=Header(stamp=Time(sec=stamp_sec)), name=[topics.GRIPPER_GOAL_JOINT], position=[width])
 
 
-def joint_state_msg(q, qd=None, fingers=(0.04, 0.04)):
-    return JointState(name=list(panda.ARM_JOINTS + panda.FINGER_JOINTS),
+def joint_state_msg(q, qd=None, fingers=(0.04, 0.04), stamp_sec: int = 0):
+    return JointState(header=Header(stamp=Time(sec=stamp_sec)), name=list(panda.ARM_JOINTS + panda.FINGER_JOINTS),
                       position=[*map(float, q), *fingers],
                       velocity=[*map(float, np.zeros(7) if qd is None else qd), 0.0, 0.0])
 
@@ -362,6 +362,21 @@ def test_an_nbp_that_beats_the_first_joint_state_waits_for_it():
     assert controller.step(1.0) == []
     controller.on_joint_state(joint_state_msg(panda.HOME))
     assert [out.kind for out in controller.step(1.1)] == ['arm', 'info']
+
+
+def test_a_depth_image_of_the_clock_before_a_reset_is_dropped():
+    controller = _controller(needs_points=True)
+    controller.on_joint_state(joint_state_msg(panda.HOME, stamp_sec=20))
+    old = conversions.numpy_to_image(np.full((4, 6), 900, np.uint16), '16UC1', Header(stamp=Time(sec=20)))
+    controller.on_depth(old)
+    assert controller.depth is old
+    controller.on_joint_state(joint_state_msg(panda.HOME, stamp_sec=1))           # reset: sim time restarts
+    assert controller.depth is None
+    controller.on_depth(old)                                                       # late, of the old clock
+    assert controller.depth is None
+    new = conversions.numpy_to_image(np.full((4, 6), 900, np.uint16), '16UC1', Header(stamp=Time(sec=1)))
+    controller.on_depth(new)
+    assert controller.depth is new
 
 
 def test_controller_builds_front_camera_points_for_learned_methods():

@@ -121,7 +121,7 @@ def test_read_stats_skips_what_is_not_a_process(tmp_path):
 
 def _record(success, segment_times, cpu_s, wall_s=10.0, success_s=8.0):
     return {'success': success, 'success_s': success_s if success else None, 'wall_s': wall_s,
-            'segments': [dict(zip(episode_log.STAGES, t)) for t in segment_times],
+            'segments': [{**dict(zip(episode_log.STAGES, t)), 'trajectory_s': t[0] + t[1]} for t in segment_times],
             'cpu': {name: {'cpu_s': c} for name, c in zip(cli.NODES, cpu_s)}}
 
 
@@ -134,6 +134,7 @@ def test_stats_and_figures_over_episodes():
     assert figs['observe_predict_s']['n'] == 3 and figs['observe_predict_s']['p50'] == 2.0
     assert figs['execution_s']['n'] == 2 and figs['execution_s']['max'] == 4.0
     assert figs['episode_s'] == figures.stats([8.0])                  # successful episodes only
+    assert figs['first_trajectory_s'] == figures.stats([1.5, 3.9])    # each episode's first segment
     assert figs['cpu']['sim_bridge_node'] == {'cpu_s': 10.0, 'cpu_percent': 25.0}
     assert (figs['episodes'], figs['succeeded']) == (2, 1)
     table = figures.format_figures(figs)

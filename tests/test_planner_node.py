@@ -156,6 +156,22 @@ def test_max_segments_ends_the_loop_on_a_robot_without_success_reports():
     assert _outcomes(out) == [('pick up the red cup', 'ended', 2)]
 
 
+def test_frames_of_the_clock_before_a_reset_never_count_as_fresh():
+    """A simulator reset restarts sim time. The side camera's last frame of the old episode
+    (stamped 20 s) must not pass for a fresh one of the new episode, whose clock is at 1 s."""
+    observations = Observations()
+    feed_frames(observations, 20.0)                                        # the old episode
+    observations.on_joint_state(JointState(header=Header(stamp=_stamp(0.5)), name=list(
+        panda.ARM_JOINTS + panda.FINGER_JOINTS), position=[*panda.HOME, 0.04, 0.04]))     # reset: back to 0.5 s
+    assert 'side camera colour' in observations.missing(0)                 # dropped with the old clock
+    feed_frames(observations, 1.0, cameras=('front',))                     # the side camera stopped
+    late = conversions.numpy_to_image(np.zeros((4, 6, 3), np.uint8), 'rgb8', Header(stamp=_stamp(20.5)))
+    observations.on_color('side', late)                                    # an old-clock frame, in flight
+    assert observations.missing(500_000_000) == ['side camera colour', 'side camera depth']
+    feed_frames(observations, 1.5)
+    assert observations.missing(500_000_000) == []
+
+
 def test_camera_timeout_stops_the_instruction_and_names_the_camera():
     loop = _loop()
     feed_frames(loop.observations, 1.0, cameras=('front',))

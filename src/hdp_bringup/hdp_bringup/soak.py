@@ -22,6 +22,7 @@ and for each fault whether its real cause was reported, with the line that said 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -31,6 +32,7 @@ from pathlib import Path
 
 from hdp_msgs_py import topics
 from hdp_msgs_py.msg import Header, Point, Pose, PoseStamped, Quaternion, String, Time
+from hdp_msgs_py.outcome import Outcome
 
 from .demo.cli import pick_domain
 from .demo.cpu import cpu_seconds, read_stats
@@ -81,6 +83,7 @@ class SoakNode(DemoNode):
     def __init__(self):
         super().__init__(on_segment=lambda segment: None)
         self.lines: list[tuple[float, str]] = []          # (monotonic s, status line or result)
+        self.outcomes: list = []                          # every well-formed /hdp/outcome
         self.on_next_trajectory = None
         self.cameras = self.create_publisher(String, topics.SIM_CAMERAS, topics.COMMAND_QOS)
         self.nbp = self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
@@ -92,6 +95,11 @@ class SoakNode(DemoNode):
     def _on_result(self, msg):
         super()._on_result(msg)
         self.lines.append((time.monotonic(), f'result {msg.stamp.sec}.{msg.stamp.nanosec:09d}: {msg.frame_id}'))
+
+    def _on_outcome(self, msg):
+        super()._on_outcome(msg)
+        with contextlib.suppress(ValueError):            # a malformed one was logged by the watcher
+            self.outcomes.append(Outcome.from_json(msg.data))
 
     def _on_trajectory(self, msg):
         super()._on_trajectory(msg)
@@ -179,6 +187,15 @@ def _soak(session, args, tasks, commands, logs, report, started, say) -> None:
         with open(logs / 'controller_node.log', 'a') as log:
             procs['controller_node'] = start_node('controller_node', commands['controller_node'], lambda _: log, say)
         report['controller_restarts'] = report.get('controller_restarts', 0) + 1
+    try:
+        _episodes(session, args, tasks, report, restart_controller, cpu_sample, warm_up, say)
+    finally:                # an interrupted or broken soak still reports what it saw
+        report['rss_end'] = {name: rss_mib(p.pid) for name, p in procs.items()}
+        report['refusals'] = [line for _, line in node.lines if 'refused' in line or 'rejected' in line]
+
+
+def _episodes(session, args, tasks, report, restart_controller, cpu_sample, warm_up, say) -> None:
+    node, procs = session.node, session.procs
     for i in range(args.episodes):
         task, seed, fault = tasks[i % len(tasks)], args.seed + i, fault_of(i, args.fault_every)
         since = time.monotonic()
@@ -197,6 +214,7 @@ def _soak(session, args, tasks, commands, logs, report, started, say) -> None:
         if fault == 'controller_kill':
             node.on_next_trajectory = restart_controller
         record, _ = run_episode(session, seed, None, args.timeout, cpu_sample, say)
+        node.on_next_trajectory = None          # an episode that sent no trajectory killed nothing
         if fault == 'camera_stop':
             node.cameras.publish(String(data='front,side'))
         for name in warm_up:
@@ -215,8 +233,6 @@ def _soak(session, args, tasks, commands, logs, report, started, say) -> None:
             + (f'; cause reported: {line is not None}' if fault else ''))
         if record['outcome'] == 'timeout':            # the planner may still be at it: wait for its outcome
             session.spin_until(lambda: any(o.instruction == record['instruction'] for o in node.outcomes), 120.0)
-    report['rss_end'] = {name: rss_mib(p.pid) for name, p in procs.items()}
-    report['refusals'] = [line for _, line in node.lines if 'refused' in line or 'rejected' in line]
 
 
 def _summarise(report: dict) -> None:

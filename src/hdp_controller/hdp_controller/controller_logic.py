@@ -56,6 +56,7 @@ STARTUP_WAIT_S = 3.0
 # (the hand pointing up at the table) ends 13 cm away: refused.
 REACH_TOLERANCE_M = 0.10
 REACH_TOLERANCE_DEG = 15.0
+FRAME_LEAD_NS = 1_000_000_000  # how far a depth image's stamp may run ahead of the latest joint state
 _KEPT_GRIPPER_GOALS = 16       # gripper goals remembered by stamp, for NBPs still to come
 
 
@@ -285,6 +286,7 @@ class SegmentController:
         self.velocity_scale, self.segment_timeout_s = velocity_scale, segment_timeout_s
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
         self.state: ArmState | None = None
+        self.state_stamp_ns = 0
         self.joint_state_problem = ''                # why the last /joint_states was unusable
         self.depth = self.info = None
         self.transforms: dict = {}                   # child frame -> TransformStamped, from /tf_static
@@ -295,9 +297,19 @@ class SegmentController:
     # -- observations --------------------------------------------------------------------
     def on_joint_state(self, msg) -> None:
         try:
-            self.state = arm_state(msg, self.arm_joints, self.finger_joints)
+            state = arm_state(msg, self.arm_joints, self.finger_joints)
         except ValueError as err:    # a partial or another robot's joint state: keep the last good one
             self.joint_state_problem = str(err)
+            return
+        if self.state is not None and stamp_ns(msg.header.stamp) < self.state_stamp_ns:
+            self.depth = None        # the clock restarted (a simulator reset): that frame shows the old scene
+        self.state, self.state_stamp_ns = state, stamp_ns(msg.header.stamp)
+
+    def on_depth(self, msg) -> None:
+        """Keep the front depth image, unless stamped far ahead of the joint states: a frame of the
+        clock before a simulator reset, arriving late."""
+        if self.state is None or stamp_ns(msg.header.stamp) <= self.state_stamp_ns + FRAME_LEAD_NS:
+            self.depth = msg
 
     def on_tf_static(self, msg) -> None:
         self.transforms.update({t.child_frame_id: t for t in msg.transforms})

@@ -74,7 +74,7 @@ class ControllerNode(ros.Node):
         self.liveness = Liveness(p['state_timeout_s'])
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
         self.create_subscription(Image, topics.depth_image(_CAMERA),
-                                 lambda m: setattr(self.logic, 'depth', m), topics.SENSOR_QOS)
+                                 self.logic.on_depth, topics.SENSOR_QOS)
         self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
                                  lambda m: setattr(self.logic, 'info', m), topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.LATCHED_QOS)

@@ -31,6 +31,7 @@ MAX_INSTRUCTION_CHARS = 256
 # Words every phrasing shares; an instruction made of these alone names no task.
 FILLER_WORDS = frozenset({'a', 'an', 'and', 'it', 'of', 'off', 'the', 'to', 'up', 'with'})
 DEFAULT_CHECKPOINT_NAME = 'hdp_nbp_agent.pt'
+FRAME_LEAD_S = 1.0       # how far a frame's stamp may run ahead of the latest joint state
 # The agent's confidence in its first NBP below which an instruction is refused. Chosen on the
 # validation seeds 900-909 (`hdp eval hierarchy --agents hdp --tasks all --episodes 10 --seed-start 900
 # --phrasings seen,heldout,nonsense --min-confidence 0`): the highest threshold that refused no
@@ -77,7 +78,10 @@ class Observations:
     """The latest frames of each camera, the camera extrinsics and the joint state.
 
     Frames count as fresh when stamped at or after a joint state seen earlier: both come
-    from the robot (or the sim), so no clock of this node is compared with theirs.
+    from the robot (or the sim), so no clock of this node is compared with theirs. A simulator
+    reset restarts that clock: when a joint state goes back in time the frames are dropped, and
+    a frame stamped more than FRAME_LEAD_S ahead of the joint states (one of the old clock, late)
+    never counts as fresh.
     """
 
     def __init__(self, cameras=topics.CAMERAS, arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS):
@@ -104,6 +108,9 @@ class Observations:
     def on_joint_state(self, msg) -> None:
         """Keep it if it has every arm and finger joint (a partial one is some other publisher's)."""
         if set(self.arm_joints + self.finger_joints) <= set(msg.name):
+            if stamp_ns(msg.header.stamp) < self.joint_stamp_ns():      # the clock restarted
+                self.color.clear()
+                self.depth.clear()
             self.joint_state = msg
 
     def joint_stamp_ns(self) -> int:
@@ -112,9 +119,10 @@ class Observations:
     def missing(self, since_ns: int) -> list[str]:
         """What is not there yet, e.g. ['front camera colour', 'side camera extrinsics']."""
         missing = [] if self.joint_state is not None else ['/joint_states with every arm and finger joint']
+        latest_ns = self.joint_stamp_ns() + int(FRAME_LEAD_S * 1e9)
         for camera in self.cameras:
             for what, frames in (('colour', self.color), ('depth', self.depth)):
-                if camera not in frames or stamp_ns(frames[camera].header.stamp) < since_ns:
+                if camera not in frames or not since_ns <= stamp_ns(frames[camera].header.stamp) <= latest_ns:
                     missing.append(f'{camera} camera {what}')
             if camera not in self.info:
                 missing.append(f'{camera} camera_info')

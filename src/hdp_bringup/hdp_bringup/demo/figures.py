@@ -10,6 +10,7 @@ from .episode_log import STAGES
 STAGE_LABELS = {'observe_predict_s': 'observe + predict (result -> NBP)',
                 'controller_s': 'controller (NBP -> trajectory)',
                 'execution_s': 'execution (trajectory -> result)',
+                'first_trajectory_s': 'responsiveness (instruction -> first trajectory)',
                 'episode_s': 'episode (instruction -> success)'}
 
 
@@ -28,6 +29,7 @@ def figures(episodes: list[dict]) -> dict:
     segments, episode time over the successful ones, CPU per node over all of them."""
     segments = [s for e in episodes for s in e['segments']]
     out = {stage: stats(s[stage] for s in segments) for stage in STAGES}
+    out['first_trajectory_s'] = stats(e['segments'][0]['trajectory_s'] for e in episodes if e['segments'])
     out['episode_s'] = stats(e['success_s'] for e in episodes if e['success'])
     wall = sum(e['wall_s'] for e in episodes)
     cpu = {}
@@ -48,7 +50,7 @@ def format_figures(figs: dict) -> str:
     lines = [f"{figs['succeeded']} of {figs['episodes']} episodes succeeded, "
              f"{figs['observe_predict_s']['n']} segments; wall-clock seconds",
              '', '| stage | n | p50 | p95 | mean | max |', '|---|---|---|---|---|---|']
-    for key in (*STAGES, 'episode_s'):
+    for key in (*STAGES, 'first_trajectory_s', 'episode_s'):
         s = figs[key]
         lines.append(f"| {STAGE_LABELS[key]} | {s['n']} | {cell(s['p50'])} | {cell(s['p95'])} | "
                      f"{cell(s['mean'])} | {cell(s['max'])} |")
