@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from hdp_controller.baselines import PlannerPolicy
+from hdp_controller.low_level import PlanResult
 from hdp_eval.low_level_eval import oracle_episode
 from hdp_planner import language
 from hdp_planner.agent import NextBestPose
@@ -44,6 +45,27 @@ def test_agent_with_planner_solves_reach_target_and_re_observes_each_segment():
 def test_segment_budget_ends_an_episode():
     record = run_episode('nbp_planner', StuckAgent(), PlannerPolicy(), 'open_drawer', 4002, max_segments=2)
     assert not record.success and record.segments == 2 and record.failure == 'segment budget spent'
+
+
+class StayPolicy:
+    """A low level whose every plan stays where the arm is: it ends as far from the NBP as the hand."""
+    name = 'stay'
+
+    def plan(self, request, scene=None):
+        return PlanResult(np.repeat(np.asarray(request.q, dtype=float)[None], 4, axis=0))
+
+
+def test_a_plan_ending_beyond_the_reach_tolerance_is_refused_as_controller_node_would():
+    kept = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2)
+    assert kept.failure == 'segment budget spent' and len(kept.reach_errors) == 2
+    metres, degrees = kept.reach_errors[0]
+    assert metres > 0.05 and degrees >= 0.0
+    refused = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
+                          reach_tolerance=(metres - 0.01, 180.0))
+    assert refused.failure == 'refused: NBP not reachable' and refused.reach_errors == [(metres, degrees)]
+    loose = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
+                        reach_tolerance=(metres + 0.01, degrees + 1.0))
+    assert loose.failure == 'segment budget spent'
 
 
 def test_seen_and_heldout_instructions_differ():

@@ -379,7 +379,8 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
                                 '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'max_segments:=2',
-                                '-p', 'camera_timeout_s:=20.0'],
+                                '-p', 'camera_timeout_s:=20.0',
+                                '-p', 'min_confidence:=0.0'],     # untrained: its confidence means nothing
                                env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         controller = subprocess.run([sys.executable, __file__, 'controller'], env=env, text=True,

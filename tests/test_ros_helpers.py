@@ -88,3 +88,26 @@ def test_liveness_names_silent_joint_states_and_a_clock_that_stands_still():
     assert live.problem(20.5, 12.1) is None and live.problem(22.1, 12.1) is not None
     with pytest.raises(ValueError):
         Liveness(0.0)
+
+
+class _Quiet(ros.Node):
+    PARAMETERS = {}
+
+    def __init__(self):
+        super().__init__('quiet')
+
+
+@pytest.mark.parametrize('shut_down', [True, False])
+def test_run_takes_an_error_from_a_shutdown_mid_take_as_the_shutdown_it_is(monkeypatch, ros_domain, shut_down):
+    def spin(node):          # what SIGINT during a subscription's message conversion looks like
+        if shut_down:
+            ros.rclpy.shutdown()
+        raise RuntimeError("Unable to convert call argument '0' to Python object")
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain))
+    monkeypatch.setattr(ros.rclpy, 'spin', spin)
+    if shut_down:
+        ros.run(_Quiet, ['quiet'])
+    else:
+        with pytest.raises(RuntimeError, match='Unable to convert'):
+            ros.run(_Quiet, ['quiet'])
+    assert not ros.rclpy.ok()

@@ -56,3 +56,20 @@ def test_a_short_soak_reports_every_fault_with_its_cause(tmp_path, ros_domain):
     assert set(report['memory']) == set(soak.NODES)     # the restarted controller measured from episode 3
     assert any('rejected reset: reach_target has variations 0..' in line for line in report['refusals'])
     assert 'faults reported with their cause: 4/4' in proc.stdout
+
+
+def test_a_restarted_node_joins_the_graphs_domain_not_the_callers(tmp_path, monkeypatch, ros_domain):
+    import rclpy
+
+    from hdp_bringup.demo import watcher
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain + 1))        # not the graph's: the soak picked its own
+    command = [sys.executable, '-c', 'import os, time; print(os.environ["ROS_DOMAIN_ID"], flush=True); time.sleep(60)']
+    log = tmp_path / 'sleeper.log'
+    with watcher.watched_graph({'sleeper': command}, tmp_path, ros_domain, lambda: rclpy.create_node('soak_test'),
+                               lambda line: None) as session:
+        first = session.procs['sleeper']
+        assert session.spin_until(lambda: log.exists() and log.read_text().count('\n') == 1, 30.0)
+        session.restart('sleeper')
+        assert first.returncode is not None and session.procs['sleeper'] is not first
+        assert session.spin_until(lambda: log.read_text().count('\n') == 2, 30.0)
+    assert log.read_text().splitlines()[:2] == [str(ros_domain)] * 2     # then the stop's KeyboardInterrupt

@@ -6,9 +6,9 @@ one fault in every FAULT_EVERY episodes, in turn:
 
     camera_stop      the side camera stops (/hdp/sim/cameras) for the whole episode; the
                      planner must end it naming that camera
-    controller_kill  controller_node is SIGKILLed when its first trajectory of the episode is
-                     out, and started again; the planner must report the missing result and
-                     the episode go on with the new controller
+    controller_kill  controller_node is SIGKILLed when its next trajectory is out (in this
+                     episode, or the next one that sends a trajectory), and started again; the
+                     planner must report the missing result and go on with the new controller
     bad_nbp          an NBP with a NaN position goes to the controller before the episode;
                      it must be refused with a result naming the invalid pose
     bad_reset        a reset to a variation the task does not have goes to the bridge before
@@ -37,7 +37,7 @@ from hdp_msgs_py.outcome import Outcome
 from .demo.cli import pick_domain
 from .demo.cpu import cpu_seconds, read_stats
 from .demo.watcher import DemoNode, GraphDown, Interrupted, run_episode, wait_for_graph, watched_graph
-from .launch_cli import NODES, default_params_file, node_commands, start_node
+from .launch_cli import NODES, default_params_file, node_commands
 
 FAULTS = ('camera_stop', 'controller_kill', 'bad_nbp', 'bad_reset')
 FAULT_EVERY = 10
@@ -154,7 +154,7 @@ def run(args) -> int:
     report = {'episodes': [], 'faults': [], 'unexpected_exits': []}
     try:
         with watched_graph(commands, logs, domain, SoakNode, say) as session:
-            _soak(session, args, tasks, commands, logs, report, started, say)
+            _soak(session, args, tasks, report, started, say)
             code = 0
     except Interrupted as why:
         say(f'{why}: stopped the nodes')
@@ -172,7 +172,7 @@ def run(args) -> int:
     return code or (0 if faults_ok else 1)
 
 
-def _soak(session, args, tasks, commands, logs, report, started, say) -> None:
+def _soak(session, args, tasks, report, started, say) -> None:
     node, procs = session.node, session.procs
     wait_for_graph(session, say, started)
     report['rss_start'], warm_up = {}, set(procs)     # nodes whose start RSS is due after this episode
@@ -182,10 +182,7 @@ def _soak(session, args, tasks, commands, logs, report, started, say) -> None:
         return cpu_seconds({name: p.pid for name, p in procs.items()}, read_stats(), ticks)
 
     def restart_controller():
-        procs['controller_node'].kill()
-        procs['controller_node'].wait(timeout=30)
-        with open(logs / 'controller_node.log', 'a') as log:
-            procs['controller_node'] = start_node('controller_node', commands['controller_node'], lambda _: log, say)
+        session.restart('controller_node')
         report['controller_restarts'] = report.get('controller_restarts', 0) + 1
     try:
         _episodes(session, args, tasks, report, restart_controller, cpu_sample, warm_up, say)
@@ -212,9 +209,13 @@ def _episodes(session, args, tasks, report, restart_controller, cpu_sample, warm
         if fault == 'camera_stop':
             node.cameras.publish(String(data='front'))
         if fault == 'controller_kill':
-            node.on_next_trajectory = restart_controller
+            node.on_next_trajectory = restart_controller      # armed until a trajectory goes out
+        kills = report.get('controller_restarts', 0)
         record, _ = run_episode(session, seed, None, args.timeout, cpu_sample, say)
-        node.on_next_trajectory = None          # an episode that sent no trajectory killed nothing
+        killed = report.get('controller_restarts', 0) > kills
+        if fault == 'controller_kill' and not killed:
+            fault = None                                      # no trajectory went out: still armed
+        fault = 'controller_kill' if killed else fault
         if fault == 'camera_stop':
             node.cameras.publish(String(data='front,side'))
         for name in warm_up:

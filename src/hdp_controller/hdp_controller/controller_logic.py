@@ -178,12 +178,18 @@ def plan_segment(policy, request: SegmentRequest, joint_names, velocity_scale: f
     return msg, plan
 
 
-def check_reach(name: str, q_end, goal_pose, tolerance_m: float, tolerance_deg: float) -> None:
-    """SegmentRefused, with the distance, when joints ``q_end`` (7,) put the hand farther than the
-    tolerance from ``goal_pose`` (7,) (rotation: the grasp or the same grasp turned half a turn)."""
+def reach_error(q_end, goal_pose) -> tuple[float, float]:
+    """(m, deg) from the hand at joints ``q_end`` (7,) to ``goal_pose`` (7,) (rotation: to the
+    grasp or the same grasp turned half a turn, whichever is nearer)."""
     translation, rotation = goal_error(torch.as_tensor(np.asarray(q_end, dtype=float))[None, None],
                                        torch.as_tensor(np.asarray(goal_pose, dtype=float))[None])
-    metres, degrees = float(translation[0]), float(np.degrees(float(rotation[0])))
+    return float(translation[0]), float(np.degrees(float(rotation[0])))
+
+
+def check_reach(name: str, q_end, goal_pose, tolerance_m: float, tolerance_deg: float) -> None:
+    """SegmentRefused, with the distance, when joints ``q_end`` put the hand farther than the
+    tolerance from ``goal_pose`` (reach_error)."""
+    metres, degrees = reach_error(q_end, goal_pose)
     if metres > tolerance_m or degrees > tolerance_deg:
         raise SegmentRefused(f'{name} plan ends {metres:.3f} m and {degrees:.1f} deg from the NBP (tolerance '
                              f'{tolerance_m:.3f} m, {tolerance_deg:.1f} deg): the NBP is not reachable as given')

@@ -115,6 +115,9 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--min-confidence', type=float, default=None,
                         help="refuse an instruction whose first prediction is less confident "
                              "(default: planner_node's min_confidence)")
+    parser.add_argument('--reach-tolerance', default=None, metavar='M,DEG',
+                        help="refuse a plan that ends farther from its NBP (default: controller_node's "
+                             "reach_tolerance_m,reach_tolerance_deg; 'off' executes every plan)")
     parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent.pt ($HDP_MODELS_DIR)')
     parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser.pt')
     parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
@@ -123,6 +126,19 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--threads', type=int, help='torch CPU threads')
     parser.add_argument('--json', type=Path, help='also write the results here')
     parser.set_defaults(func=run_hierarchy)
+
+
+def _reach_tolerance(text: str | None) -> tuple[float, float] | None:
+    from hdp_controller.controller_logic import REACH_TOLERANCE_DEG, REACH_TOLERANCE_M
+    if text is None:
+        return REACH_TOLERANCE_M, REACH_TOLERANCE_DEG
+    if text == 'off':
+        return None
+    try:
+        metres, degrees = (float(v) for v in text.split(','))
+    except ValueError:
+        raise SystemExit(f"--reach-tolerance takes M,DEG (e.g. 0.1,15) or 'off', got {text!r}") from None
+    return metres, degrees
 
 
 def run_hierarchy(args) -> int:
@@ -134,6 +150,7 @@ def run_hierarchy(args) -> int:
     from .hierarchy_eval import AGENTS, PHRASINGS, evaluate, markdown_table
     agents, tasks = _names(args.agents, AGENTS, 'agent'), _names(args.tasks, TASKS, 'task')
     phrasings = _names('seen,heldout' if args.phrasings == 'both' else args.phrasings, PHRASINGS, 'phrasing')
+    reach_tolerance = _reach_tolerance(args.reach_tolerance)
     if args.threads:
         import torch
         torch.set_num_threads(args.threads)
@@ -143,7 +160,7 @@ def run_hierarchy(args) -> int:
     min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     try:
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments,
-                           min_confidence=min_confidence)
+                           min_confidence=min_confidence, reach_tolerance=reach_tolerance)
     except ValueError as err:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1

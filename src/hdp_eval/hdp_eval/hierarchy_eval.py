@@ -19,6 +19,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
+from hdp_controller.controller_logic import reach_error
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
 from hdp_planner import language
 from hdp_sim_bridge import experts
@@ -49,6 +50,7 @@ class HierarchyRecord:
     failure: str | None = None
     segments: int = 0
     confidences: list = dataclasses.field(default_factory=list)    # the agent's, per prediction
+    reach_errors: list = dataclasses.field(default_factory=list)   # (m, deg) plan end to NBP, per plan
     predict_times: list = dataclasses.field(default_factory=list)
     plan_times: list = dataclasses.field(default_factory=list)
 
@@ -74,13 +76,18 @@ def nonsense(text: str, rng: np.random.Generator) -> str:
 
 def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing: str = 'seen',
                 max_segments: int = MAX_SEGMENTS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None,
-                min_confidence: float = 0.0) -> HierarchyRecord:
-    """One closed-loop episode. min_confidence: as planner_node's parameter, a first prediction
-    below it refuses the instruction (failure 'refused: low confidence'), nothing moves."""
+                min_confidence: float = 0.0, reach_tolerance: tuple[float, float] | None = None) -> HierarchyRecord:
+    """One closed-loop episode, refusing what planner_node and controller_node refuse.
+
+    min_confidence: a first prediction below it refuses the instruction (failure 'refused: low
+    confidence'). reach_tolerance: (m, deg); a plan ending farther from its NBP is refused
+    (failure 'refused: NBP not reachable'), as controller_node's reach_tolerance_m/deg do.
+    Either way nothing moves.
+    """
     if world is None:
         with PandaWorld() as own:
             return run_episode(name, agent, low_level, task_name, seed, phrasing, max_segments, camera_size, own,
-                               min_confidence)
+                               min_confidence, reach_tolerance)
     task, _, variation = experts.reachable_scene(world, task_name, seed)
     record = HierarchyRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
     cameras = default_cameras(*camera_size)
@@ -105,6 +112,10 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
         if not plan.ok:
             record.failure, record.ik_error = plan.failure or 'no_plan', bool(plan.ik_error)
             return record
+        record.reach_errors.append(tuple(round(e, 4) for e in reach_error(plan.joints[-1], request.goal_pose)))
+        if reach_tolerance is not None and any(e > t for e, t in zip(record.reach_errors[-1], reach_tolerance)):
+            record.failure = 'refused: NBP not reachable'
+            return record
         execute_segment(world, task, plan.joints, request.gripper_open, nbp.gripper_open)
         if task.success(world):
             record.success = True
@@ -114,7 +125,8 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
 
 
 def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phrasings=('seen',),
-             max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0) -> dict:
+             max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0,
+             reach_tolerance: tuple[float, float] | None = None) -> dict:
     """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates."""
     unknown = [t for t in tasks if t not in TASKS]
     if unknown or not tasks:
@@ -129,9 +141,9 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
     with PandaWorld() as world:
         for name, task, seed, phrasing in tqdm(jobs, desc='hierarchy episodes', unit='episode', disable=not progress):
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
-                                       world=world, min_confidence=min_confidence))
+                                       world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance))
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
-               'min_confidence': min_confidence, 'agents': {}}
+               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'agents': {}}
     for name in low_levels:
         results['agents'][name] = {}
         for phrasing in phrasings:

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import rclpy
 import rclpy.node
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
@@ -153,9 +152,10 @@ def run(node_class, args=None, name: str = '') -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RCLError:
-        # rclpy's SIGINT handler can shut the context down while the executor builds its
-        # wait set ('the given context is not valid'): that is a shutdown too, not a failure.
+    except RuntimeError:
+        # rclpy's SIGINT handler can shut the context down while the executor builds its wait
+        # set (RCLError 'the given context is not valid') or while a subscription converts a
+        # message (pybind11's 'Unable to convert call argument'): a shutdown too, not a failure.
         if rclpy.ok():
             raise
     finally:

@@ -15,13 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+import rclpy.executors
 
 from hdp_motion import panda
 from hdp_msgs_py import conversions, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
 from hdp_msgs_py.outcome import Outcome
 
-from ..launch_cli import NODES, running_nodes
+from ..launch_cli import NODES, running_nodes, start_node
 from .cpu import cpu_usage
 from .episode_log import EpisodeLog, stamp_ns
 from .media import GIF_WIDTH
@@ -146,10 +147,14 @@ class DemoNode(ros.Node):
 
 
 class Session:
-    """The demo node spinning while the node processes run; every wait checks both."""
+    """The demo node spinning while the node processes run; every wait checks both.
 
-    def __init__(self, node, procs: dict, stop: list):
-        self.node, self.procs, self.stop = node, procs, stop
+    ``executor`` holds ``node`` for the whole session: rclpy.spin_once(node) would add and remove
+    the node on every call, rebuilding its wait set under 120 Hz joint states and camera frames.
+    """
+
+    def __init__(self, node, executor, procs: dict, stop: list, start):
+        self.node, self.executor, self.procs, self.stop, self._start = node, executor, procs, stop, start
 
     def spin_until(self, done, timeout_s: float) -> bool:
         """Spin until ``done()``; False on timeout. Interrupted or GraphDown end the wait early."""
@@ -162,8 +167,14 @@ class Session:
                 raise GraphDown(f'{died} exited with code {self.procs[died].returncode}')
             if time.monotonic() >= deadline:
                 return False
-            rclpy.spin_once(self.node, timeout_sec=0.1)
+            self.executor.spin_once(timeout_sec=0.1)
         return True
+
+    def restart(self, name: str) -> None:
+        """SIGKILL node ``name`` and start it again, on the graph's domain, its output appended."""
+        self.procs[name].kill()
+        self.procs[name].wait(timeout=30)
+        self.procs[name] = self._start(name)
 
 
 @contextlib.contextmanager
@@ -178,15 +189,21 @@ def watched_graph(commands: dict, logs: Path, domain: int, make_node, say):
         stop.append(signal.Signals(signum).name)     # the first ends the wait; later ones wait for the stop
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = make_node()
+    executor = rclpy.executors.SingleThreadedExecutor()
+    executor.add_node(node)
     try:
         with contextlib.ExitStack() as files:
             def output(name):
                 return files.enter_context(open(logs / f'{name}.log', 'a'))
-            with running_nodes(commands, output, say, dict(os.environ, ROS_DOMAIN_ID=str(domain))) as procs:
-                yield Session(node, procs, stop)
+            env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+            def start(name):
+                return start_node(name, commands[name], output, say, env)
+            with running_nodes(commands, output, say, env) as procs:
+                yield Session(node, executor, procs, stop, start)
     finally:
         for sig, handler in previous.items():       # the runtime's, which shutdown replaces in turn
             signal.signal(sig, handler)
+        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
 
