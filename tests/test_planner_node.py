@@ -359,7 +359,7 @@ def test_planner_node_refuses_bad_instructions_and_reports_a_camera_timeout(ros_
     assert refusals == ['planner_node: refused instruction: the instruction is empty',
                         'planner_node: refused instruction: the instruction has 319 characters, more than 256',
                         "planner_node: refused instruction: no word of 'make me a sandwich' names anything the "
-                        "agent was trained on (words such as azure, ball, black, blue, bottom, box, ...)"]
+                        "agent was trained on (words such as azure, ball, barbecue, bbq, black, blue, ...)"]
     timeout = [s for s in facts['status'] if 'timed out' in s]
     assert timeout and timeout[0].startswith("planner_node: instruction 'open the middle drawer': "
                                              'camera front, side timed out after 2.0 s')

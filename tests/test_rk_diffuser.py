@@ -443,6 +443,18 @@ def test_joint_trajectory_is_timed_within_limits_and_refuses_bad_waypoints():
         joint_trajectory(panda.HOME, np.full((3, 7), np.nan))
 
 
+def test_an_arm_read_a_hair_beyond_a_limit_gets_a_trajectory_the_bridge_accepts():
+    """The arm pressed on a limit reads slightly past it; point 0 (the current joints) goes out
+    on the limit, which sim_bridge_node (as joint_trajectory_controller) accepts."""
+    from hdp_controller.trajectory import joint_trajectory
+    from hdp_sim_bridge.trajectory_follower import accept
+    current = panda.HOME.copy()
+    current[4] = panda.UPPER[4] + 1e-7
+    goal = np.linspace(current, np.concatenate([panda.HOME[:4], [2.5], panda.HOME[5:]]), 10)
+    msg = joint_trajectory(current, goal[1:])
+    accept(msg, 0.0, current)           # raised 'panda_joint5 = 2.8973 rad is above its limit' before
+
+
 def test_fig4_plot_writes_a_png(tmp_path):
     from hdp_eval.figures import plot
     line = np.linspace([0.4, 0.0, 1.0], [0.6, 0.1, 0.9], HORIZON)

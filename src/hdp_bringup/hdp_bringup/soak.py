@@ -175,7 +175,9 @@ def run(args) -> int:
 def _soak(session, args, tasks, report, started, say) -> None:
     node, procs = session.node, session.procs
     wait_for_graph(session, say, started)
-    report['rss_start'], warm_up = {}, set(procs)     # nodes whose start RSS is due after this episode
+    # Start RSS is read once every task has run (its shapes allocated, its code loaded): after
+    # the first pass over the tasks, and for a restarted controller after its first episode.
+    report['rss_start'], warm_up = {}, {name: min(len(tasks), args.episodes) - 1 for name in procs}
     ticks = os.sysconf('SC_CLK_TCK')
 
     def cpu_sample():
@@ -218,17 +220,18 @@ def _episodes(session, args, tasks, report, restart_controller, cpu_sample, warm
         fault = 'controller_kill' if killed else fault
         if fault == 'camera_stop':
             node.cameras.publish(String(data='front,side'))
-        for name in warm_up:
+        for name in [name for name, due in warm_up.items() if due <= i]:
             report['rss_start'][name] = rss_mib(procs[name].pid)
-        warm_up = set()
+            del warm_up[name]
         if fault == 'controller_kill':
             session.spin_until(lambda: node.said(since, 'controller_node: ready'), 120.0)
-            warm_up = {'controller_node'}
+            warm_up['controller_node'] = i + 1
         line = node.said(since, CAUSES[fault]) if fault else None
         if fault:
             report['faults'].append({'episode': i, 'fault': fault, 'reported': line is not None, 'line': line})
         report['episodes'].append({key: record[key] for key in ('task', 'seed', 'instruction', 'outcome', 'reason',
-                                                                'success', 'wall_s')} | {'fault': fault})
+                                                                'success', 'wall_s')}
+                                  | {'fault': fault, 'rss_mib': {name: rss_mib(p.pid) for name, p in procs.items()}})
         say(f"{i + 1}/{args.episodes} {task} seed {seed}{f' [{fault}]' if fault else ''}: {record['outcome']}"
             + (f' ({record["reason"]})' if not record['success'] else '')
             + (f'; cause reported: {line is not None}' if fault else ''))

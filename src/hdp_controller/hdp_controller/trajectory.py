@@ -35,6 +35,9 @@ def timed_waypoints(q_current, joints, velocity_scale: float = VELOCITY_SCALE) -
     if not panda.within_limits(path[1:], tol=_LIMIT_TOLERANCE):
         worst = np.max(np.maximum(panda.LOWER - path[1:], path[1:] - panda.UPPER))
         raise TrajectoryError(f'a waypoint is {worst:.4f} rad outside the joint position limits')
+    # Onto the limits exactly: an arm pressed against a limit reads a hair beyond it, and a
+    # controller refuses a point 0 there (the soak saw panda_joint5 at 2.8973 + 1e-7 refused).
+    path = np.clip(path, panda.LOWER, panda.UPPER)
     return path, time_parameterize(path, velocity_scale=velocity_scale)
 
 

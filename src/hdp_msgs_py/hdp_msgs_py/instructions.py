@@ -37,6 +37,22 @@ TASKS = {
         'lift toilet seat up', 'put the toilet seat up', 'raise the toilet seat')),
     'open_door': TaskLanguage(('',), (
         'open the door', 'use the handle to open the door', 'turn the handle and pull the door open')),
+    'take_lid_off_saucepan': TaskLanguage(('',), (
+        'take lid off the saucepan', 'remove the lid from the pan',
+        'using the handle, lift the lid off of the pan', 'uncover the saucepan')),
+    'open_grill': TaskLanguage(('',), (
+        'open the grill', 'open the bbq', 'grasp the handle and raise the cover up to open the grill',
+        'open the barbecue')),
+    'open_microwave': TaskLanguage(('',), (
+        'open microwave', 'open the microwave door', 'swing the microwave door open',
+        'pull the microwave door open')),
+    'open_oven': TaskLanguage(('',), (
+        'open the oven', 'open the oven door', 'pull the oven door down',
+        'grab hold of the handle and pull the oven door open')),
+    'put_knife_on_chopping_board': TaskLanguage(('',), (
+        'put the knife on the chopping board', 'place the knife on the chopping board',
+        'pick up the knife and leave it on the chopping board',
+        'move the knife from the holder to the chopping board')),
 }
 
 

@@ -179,6 +179,7 @@ class NextBestPoseNet(nn.Module):
         fine = self.fine_outputs(voxels.voxelise(xyz, rgb, batch, fine_lower, fine_upper, size),
                                  condition, centre)
         position = voxels.position_of(fine['index'], fine['offset'], fine_lower, fine_upper, size)
+        position = torch.maximum(torch.minimum(position, upper), lower)   # a fine cube at the edge reaches out
         confidence = (coarse.softmax(1).gather(1, coarse_index[:, None])[:, 0]
                       * fine['logits'].softmax(1).gather(1, fine['index'][:, None])[:, 0])
         quat = rotations.bins_to_quat(fine['rotation'].argmax(2).cpu().numpy())

@@ -122,18 +122,21 @@ def rest(world, task, q_final, on_step, on_arrive, hold: float, timeout: float =
     stop and the gripper change (or the last frame) are one keyframe, not two.
     """
     world.command_arm(q_final)
-    start, still_since = world.sim_time, None
+    start, still_since, arrived = world.sim_time, None, False
     while world.sim_time - start < timeout:
         _step(world, task, on_step)
         if world.arm_reference_settled and np.max(np.abs(world.joint_velocities())) < SETTLE_VELOCITY:
             if still_since is None:
                 still_since = world.sim_time
+            if not arrived:     # once: an arm pressed on a contact stops and starts again
+                arrived = True
                 on_arrive()
             if world.sim_time - still_since >= hold:
                 return
         else:
             still_since = None
-    on_arrive()      # never quite still (e.g. pushing against a hinge): carry on from here
+    if not arrived:
+        on_arrive()      # never quite still (e.g. pushing against a hinge): carry on from here
 
 
 def actuate(world, task, action: str, on_step, on_gripper) -> None:
@@ -150,31 +153,44 @@ def _step(world, task, on_step) -> None:
     on_step()
 
 
-def _ik_chain(world, waypoints, q_first_seed) -> tuple[float, np.ndarray | None]:
+def _ik_chain(world, waypoints, q_first_seed, free_seeds) -> tuple[float, list | None]:
     """IK through every pose in order, each seeded by the last; straight lines in full.
 
-    Returns (the smallest distance to a joint limit along the chain, the first
-    waypoint's solution), or (-inf, None) when some pose is out of reach.
+    A waypoint after the first that the arm reaches by planning ('any') may need another
+    arm configuration (the hand turned over to press from above): when the previous
+    solution does not lead to it within a small change, it is solved from ``free_seeds``
+    and the planner gets there. Returns (the smallest distance to a joint limit along the
+    chain, each waypoint's joint goal), or (-inf, None) when some pose is out of reach.
     """
     q_prev, q = world.joint_positions(), q_first_seed
-    margin, first = np.inf, None
+    margin, goals = np.inf, []
     for waypoint in waypoints:
         for xyz, quat in waypoint.poses:
-            if waypoint.path == 'linear' and first is not None:   # the whole line, as executed
+            if waypoint.path == 'linear' and goals:   # the whole line, as executed
                 line = planning.linear_path(_cid(world), world.robot, q, xyz, quat, obstacles=[world.table])
                 q = None if line is None else line[-1]
             else:
                 q = planning.solve_ik(_cid(world), world.robot, xyz, quat, q)
-            if q is None or (first is not None and np.max(np.abs(q - q_prev)) > 0.5):
+            if goals and waypoint.path == 'any' and (q is None or np.max(np.abs(q - q_prev)) > 0.5):
+                q = _closest_solution(world, xyz, quat, free_seeds, q_prev)
+            elif goals and q is not None and np.max(np.abs(q - q_prev)) > 0.5:
+                q = None
+            if q is None:
                 return -np.inf, None
-            first = q if first is None else first
             margin = min(margin, float(np.min(np.minimum(q - panda.LOWER, panda.UPPER - q))))
             q_prev = q
-    return margin, first
+        goals.append(q)
+    return margin, goals
 
 
-def choose_waypoints(world, task) -> tuple[list, np.ndarray | None]:
-    """The waypoints and first joint goal that keep the arm farthest from its limits.
+def _closest_solution(world, xyz, quat, seeds, q_near) -> np.ndarray | None:
+    solutions = [q for q in (planning.solve_ik(_cid(world), world.robot, xyz, quat, seed) for seed in seeds)
+                 if q is not None]
+    return min(solutions, key=lambda q: np.max(np.abs(q - q_near)), default=None)
+
+
+def choose_waypoints(world, task) -> tuple[list, list | None]:
+    """The waypoints and their joint goals that keep the arm farthest from its limits.
 
     Tries both grasp flips (the wrist turned 180 deg) and IK seeds from the
     current arm and from SEED_POSTURES turned towards the object, as a person
@@ -194,13 +210,13 @@ def choose_waypoints(world, task) -> tuple[list, np.ndarray | None]:
     for flip in (False, True):
         waypoints = task.waypoints(world, flip)
         for seed in seeds:
-            margin, first = _ik_chain(world, waypoints, seed)
-            if first is not None:
+            margin, goals = _ik_chain(world, waypoints, seed, seeds[1:])
+            if goals:
                 with planning.preserved_state(_cid(world), world.robot):
-                    if not valid(first):      # the first goal must be free to plan to
+                    if not valid(goals[0]):      # the first goal must be free to plan to
                         continue
             if margin > best[0]:
-                best = (margin, waypoints, first)
+                best = (margin, waypoints, goals)
     return best[1], best[2]
 
 
@@ -220,10 +236,10 @@ def run_expert(world, task, rng: np.random.Generator, on_step=lambda: None, on_r
     with each gripper command (True: open).
     """
     config = config or ExpertConfig()
-    waypoints, q_first = choose_waypoints(world, task)
+    waypoints, goals = choose_waypoints(world, task)
     for i, waypoint in enumerate(waypoints):
         try:
-            path = plan(world, task, waypoint, rng, config, q_first if i == 0 else None)
+            path = plan(world, task, waypoint, rng, config, None if goals is None else goals[i])
         except ExpertFailure as err:
             return ExpertResult(False, f'waypoint {i}: {err}')
         last = i == len(waypoints) - 1

@@ -28,6 +28,19 @@ COLOURS = {
     'black': (0.0, 0.0, 0.0), 'white': (1.0, 1.0, 1.0),
 }
 
+# Sizes the tasks place their grasps by (m).
+PAN_HEIGHT = 0.07
+LID_KNOB = (0.012, 0.035)              # radius, height
+GRILL_DEPTH = 0.26                     # front to back: the lid's hinge to its front edge
+GRILL_HANDLE = (0.008, 0.05)           # bar radius, how far it stands in front of the lid
+MICROWAVE_DOOR_WIDTH = 0.32
+MICROWAVE_HANDLE = (0.008, 0.045)      # bar radius, how far it stands proud of the door
+OVEN_HANDLE = (0.008, 0.045)           # bar radius, how far it stands proud of the door
+OVEN_DOOR_HEIGHT = 0.20
+KNIFE_BLOCK_HEIGHT = 0.05
+KNIFE_HANDLE = (0.024, 0.10, 0.022)    # x, y, z
+CHOPPING_BOARD = (0.20, 0.30, 0.015)   # x, y, z
+
 _WOOD = (0.55, 0.4, 0.25, 1)
 _PALE = (0.85, 0.85, 0.8, 1)
 _METAL = (0.6, 0.6, 0.65, 1)
@@ -179,3 +192,107 @@ def door(width=0.30, height=0.40) -> str:
                            limits=(0.0, 1.6))
                   + _joint('handle', 'revolute', 'door_link', 'handle_link',
                            (t / 2, -width + 0.05, height * 0.5), axis=(-1, 0, 0), limits=(0.0, 1.0)))
+
+
+def saucepan() -> str:
+    """A pan (solid body and a long side handle along -y); its top is at PAN_HEIGHT."""
+    pan = [Part((0.09, PAN_HEIGHT), (0, 0, PAN_HEIGHT / 2), _METAL, cylinder=True),
+           Part((0.14, 0.025, 0.015), (0, -0.16, PAN_HEIGHT - 0.01), (0.15, 0.15, 0.15, 1), rpy=(0, 0, 1.5708))]
+    return _robot('saucepan', _link('base', pan, 0.0))
+
+
+def saucepan_lid() -> str:
+    """A free lid: a disc with a knob on top, frame at the disc's underside centre.
+    The knob (2.4 cm across, 3.5 cm tall) is what the gripper takes."""
+    lid = [Part((0.095, 0.012), (0, 0, 0.006), (0.3, 0.3, 0.35, 1), cylinder=True),
+           Part((LID_KNOB[0], LID_KNOB[1]), (0, 0, 0.012 + LID_KNOB[1] / 2), (0.1, 0.1, 0.1, 1), cylinder=True)]
+    return _robot('saucepan_lid', _link('base', lid, 0.15))
+
+
+def grill(depth=GRILL_DEPTH, width=0.34, height=0.12) -> str:
+    """A barbecue: a body with a lid hinged along its back top edge; joint `lid` opens
+    upwards (+) and the handle is a bar along y in front of the lid's front edge."""
+    body = [Part((depth, width, height - 0.03), (0, 0, 0.03 + (height - 0.03) / 2), (0.15, 0.15, 0.15, 1))]
+    body += [Part((0.03, 0.03, 0.03), (x, y, 0.015), _METAL)
+             for x in (depth / 2 - 0.03, -depth / 2 + 0.03) for y in (width / 2 - 0.03, -width / 2 + 0.03)]
+    dark = (0.25, 0.05, 0.05, 1)
+    lid = [Part((depth, width, 0.015), (depth / 2, 0, 0.0075), dark),
+           Part((depth * 0.8, width * 0.9, 0.04), (depth / 2, 0, 0.035), dark),     # the dome
+           Part((0.012, width, 0.03), (depth + 0.006, 0, -0.005), dark),             # front skirt
+           Part((GRILL_HANDLE[0], 0.16), (depth + GRILL_HANDLE[1], 0, 0.02), _METAL, cylinder=True,
+                rpy=(1.5708, 0, 0))]
+    lid += [Part((GRILL_HANDLE[1], 0.012, 0.012), (depth + GRILL_HANDLE[1] / 2, y, 0.02), _METAL)
+            for y in (0.07, -0.07)]
+    return _robot('grill', _link('base', body, 0.0) + _link('lid_link', lid, 0.4)
+                  + _joint('lid', 'revolute', 'base', 'lid_link', (-depth / 2, 0, height), axis=(0, -1, 0),
+                           limits=(0.0, 1.9)))
+
+
+def microwave(depth=0.30, width=0.44, height=0.26, door_width=MICROWAVE_DOOR_WIDTH) -> str:
+    """A microwave: joint `door` hinged on a vertical axis at the -y edge of the front,
+    opening towards +x (+), and a vertical handle bar near the door's free edge; a
+    control panel fills the front beside the door."""
+    t = 0.015
+    shell = (0.85, 0.85, 0.85, 1)
+    body = [Part((depth, width, t), (0, 0, t / 2), shell), Part((depth, width, t), (0, 0, height - t / 2), shell),
+            Part((depth, t, height), (0, width / 2 - t / 2, height / 2), shell),
+            Part((depth, t, height), (0, -width / 2 + t / 2, height / 2), shell),
+            Part((t, width, height), (-depth / 2 + t / 2, 0, height / 2), shell),
+            Part((t, width - door_width, height), (depth / 2 - t / 2, door_width / 2, height / 2),
+                 (0.2, 0.2, 0.2, 1))]                                                   # control panel
+    glass = (0.1, 0.1, 0.12, 1)
+    door = [Part((0.02, door_width, height - 0.01), (0.01, door_width / 2, 0), glass),
+            Part((MICROWAVE_HANDLE[1], 0.012, 0.012), (0.02 + MICROWAVE_HANDLE[1] / 2, door_width - 0.04, 0.05),
+                 _METAL),
+            Part((MICROWAVE_HANDLE[1], 0.012, 0.012), (0.02 + MICROWAVE_HANDLE[1] / 2, door_width - 0.04, -0.05),
+                 _METAL),
+            Part((MICROWAVE_HANDLE[0], 0.14), (0.02 + MICROWAVE_HANDLE[1], door_width - 0.04, 0), _METAL,
+                 cylinder=True)]
+    return _robot('microwave', _link('base', body, 0.0) + _link('door_link', door, 0.4)
+                  + _joint('door', 'revolute', 'base', 'door_link', (depth / 2, -width / 2, height / 2),
+                           axis=(0, 0, -1), limits=(0.0, 2.0)))
+
+
+def oven(depth=0.34, width=0.40, height=0.34, door_height=OVEN_DOOR_HEIGHT) -> str:
+    """An oven: joint `door` hinged along the bottom of the front, falling open towards +x
+    (+), with a handle bar along y near its top. The door starts 10 cm up, so the hand
+    holding the pulled-down handle stays clear of the table."""
+    t = 0.015
+    shell = (0.75, 0.75, 0.78, 1)
+    bottom = 0.10
+    body = [Part((depth, width, bottom), (0, 0, bottom / 2), shell),
+            Part((depth, width, t), (0, 0, height - t / 2), shell),
+            Part((depth, t, height), (0, width / 2 - t / 2, height / 2), shell),
+            Part((depth, t, height), (0, -width / 2 + t / 2, height / 2), shell),
+            Part((t, width, height), (-depth / 2 + t / 2, 0, height / 2), shell),
+            Part((t, width, height - bottom - door_height), (depth / 2 - t / 2, 0, (height + bottom + door_height) / 2),
+                 (0.2, 0.2, 0.2, 1))]                                                    # control strip
+    door = [Part((0.02, width - 0.02, door_height), (0.01, 0, door_height / 2), (0.1, 0.1, 0.12, 1)),
+            Part((OVEN_HANDLE[0], width - 0.12), (0.02 + OVEN_HANDLE[1], 0, door_height - 0.03), _METAL,
+                 cylinder=True, rpy=(1.5708, 0, 0))]
+    door += [Part((OVEN_HANDLE[1], 0.012, 0.012), (0.02 + OVEN_HANDLE[1] / 2, y, door_height - 0.03), _METAL)
+             for y in (width / 2 - 0.08, -width / 2 + 0.08)]
+    return _robot('oven', _link('base', body, 0.0) + _link('door_link', door, 0.5)
+                  + _joint('door', 'revolute', 'base', 'door_link', (depth / 2, 0, bottom), axis=(0, 1, 0),
+                           limits=(0.0, 1.65)))
+
+
+def knife_block(length=0.16) -> str:
+    """A narrow wooden rail the knife lies on, 5 cm high, along y: narrow enough for open fingers
+    to reach past its top either side."""
+    return _robot('knife_block', _link('base', [Part((0.03, length, KNIFE_BLOCK_HEIGHT),
+                                                     (0, 0, KNIFE_BLOCK_HEIGHT / 2), (0.3, 0.18, 0.1, 1))], 0.0))
+
+
+def chopping_board() -> str:
+    return _robot('chopping_board', _link('base', [Part(CHOPPING_BOARD, (0, 0, CHOPPING_BOARD[2] / 2),
+                                                        (0.8, 0.65, 0.45, 1))], 0.0))
+
+
+def knife() -> str:
+    """A free knife along +y, its frame at the centre of the handle, where its mass is: it lies
+    on the handle, the blade held level."""
+    handle = KNIFE_HANDLE
+    return _robot('knife', _link('base', [
+        Part(handle, (0, 0, 0), (0.1, 0.1, 0.1, 1)),
+        Part((0.026, 0.16, 0.003), (0, handle[1] / 2 + 0.08, 0), _METAL)], 0.12))

@@ -364,7 +364,206 @@ class OpenDoor(Task):
                 Waypoint(pull, 'open', 'via')]
 
 
-TASKS = {cls.name: cls for cls in (ReachTarget, PickUpCup, OpenDrawer, OpenBox, ToiletSeatUp, OpenDoor)}
+class TakeLidOffSaucepan(Task):
+    touched_roles = ('lid',)
+    name = 'take_lid_off_saucepan'
+    phrasings = instructions.TASKS[name].phrasings
+    lift = 0.08           # the lid this far above the pan, held, is off (RLBench: a sensor above the pan)
+
+    def build(self, world, rng):
+        origin, _ = self.base_pose
+        self.load(world, 'pan', objects.saucepan())
+        self.load(world, 'lid', objects.saucepan_lid(), xyz=origin + [0, 0, objects.PAN_HEIGHT], fixed=False)
+        self.start_z = origin[2] + objects.PAN_HEIGHT
+
+    def _lid(self, world):
+        xyz, quat = world.client.getBasePositionAndOrientation(self.bodies['lid'])
+        return np.array(xyz), np.array(quat)
+
+    def success(self, world):
+        return world.grasped_body() == self.bodies['lid'] and self._lid(world)[0][2] > self.start_z + self.lift
+
+    def waypoints(self, world, flip=False):
+        lid_xyz, lid_quat = self._lid(world)
+        _, _, y_axis = self.frame()
+        knob = lid_xyz + quat_to_matrix(lid_quat) @ [0, 0, 0.012 + 0.6 * objects.LID_KNOB[1]]
+        quat = grasp_quat(_DOWN, y_axis, flip)
+        return [Waypoint([(knob + [0, 0, 0.10], quat)]),
+                Waypoint([(knob, quat)], 'close', 'linear'),
+                Waypoint([(knob + [0, 0, 0.15], quat)], None, 'linear')]
+
+
+class _GraspedHinge(Task):
+    """Grasp a handle on a hinged part and carry it round the hinge (the grasp is rigid)."""
+    body_name = joint_name = ''
+    swing = 0.0           # how far the expert carries it (rad)
+
+    def handle(self, world):
+        """(grasp point, approach direction, closing direction) in the world."""
+        raise NotImplementedError
+
+    def hinge_axis(self, world):
+        """The joint's axis in the world (positive: opening)."""
+        raise NotImplementedError
+
+    def waypoints(self, world, flip=False):
+        point, approach, closing = self.handle(world)
+        grasp = (point, grasp_quat(approach, closing, flip))
+        pivot, _ = self.link_pose(world, self.body_name, self.joint_name)
+        swing = self.swing - self.joint_position(world, self.body_name, self.joint_name)
+        return [Waypoint([(point - 0.10 * approach, grasp[1])]),
+                Waypoint([grasp], 'close', 'linear'),
+                Waypoint(arc(grasp, pivot, self.hinge_axis(world), swing), None, 'via')]
+
+
+class OpenGrill(_GraspedHinge):
+    touched_roles = ('grill',)
+    name = 'open_grill'
+    phrasings = instructions.TASKS[name].phrasings
+    body_name, joint_name = 'grill', 'lid'
+    swing = math.radians(65)
+    distance = (0.62, 0.70)
+
+    def build(self, world, rng):
+        self.load(world, 'grill', objects.grill())
+
+    def success(self, world):
+        return self.joint_position(world, 'grill', 'lid') > math.radians(50)
+
+    def handle(self, world):
+        _, x_axis, y_axis = self.frame()
+        link_xyz, link_quat = self.link_pose(world, 'grill', 'lid')
+        bar = link_xyz + quat_to_matrix(link_quat) @ [objects.GRILL_DEPTH + objects.GRILL_HANDLE[1], 0, 0.02]
+        approach = -x_axis + 0.5 * _DOWN        # pitched down, level by the end of the lift
+        return bar, approach / np.linalg.norm(approach), np.cross(approach, y_axis)
+
+    def hinge_axis(self, world):
+        return -self.frame()[2]
+
+
+class OpenMicrowave(_GraspedHinge):
+    touched_roles = ('microwave',)
+    name = 'open_microwave'
+    phrasings = instructions.TASKS[name].phrasings
+    body_name, joint_name = 'microwave', 'door'
+    swing = math.radians(95)
+    distance = (0.74, 0.82)
+    yaw_range = math.pi / 8
+
+    def build(self, world, rng):
+        self.load(world, 'microwave', objects.microwave())
+
+    def success(self, world):
+        return self.joint_position(world, 'microwave', 'door') > math.radians(80)
+
+    def handle(self, world):
+        _, x_axis, _ = self.frame()
+        link_xyz, link_quat = self.link_pose(world, 'microwave', 'door')
+        bar = link_xyz + quat_to_matrix(link_quat) @ [0.02 + objects.MICROWAVE_HANDLE[1],
+                                                        objects.MICROWAVE_DOOR_WIDTH - 0.04, 0]
+        return bar, -x_axis, np.cross([0, 0, 1], x_axis)
+
+    def hinge_axis(self, world):
+        return np.array([0.0, 0.0, -1.0])
+
+
+class OpenOven(Task):
+    """Pull the door down by its handle, let go, and push it down the rest of the way from above."""
+    touched_roles = ('oven',)
+    name = 'open_oven'
+    phrasings = instructions.TASKS[name].phrasings
+    distance = (0.84, 0.90)
+    yaw_range = math.pi / 8
+    pull = math.radians(45)
+    open_angle = math.radians(85)
+    stiffness = 1.5       # Nm of hinge friction: the door stays where it is left, as a sprung oven door
+
+    def build(self, world, rng):
+        self.load(world, 'oven', objects.oven())
+        world.client.setJointMotorControl2(self.bodies['oven'], self.joint(world, 'oven', 'door'),
+                                           world.client.VELOCITY_CONTROL, force=self.stiffness)
+
+    def success(self, world):
+        return (self.joint_position(world, 'oven', 'door') > math.radians(70)
+                and world.grasped_body() is None)
+
+    def waypoints(self, world, flip=False):
+        _, x_axis, y_axis = self.frame()
+        hinge, hinge_quat = self.link_pose(world, 'oven', 'door')
+        door = quat_to_matrix(hinge_quat)
+        bar = hinge + door @ [0.02 + objects.OVEN_HANDLE[1], 0, objects.OVEN_DOOR_HEIGHT - 0.03]
+        # A hand pitched down on the bar, fingers either side of it; pulled, it turns up with
+        # the door (whose outside comes to face the floor) to about level.
+        approach = -door[:, 0] + 0.7 * _DOWN
+        approach /= np.linalg.norm(approach)
+        grasp = (bar, grasp_quat(approach, np.cross(approach, y_axis), flip))
+        pull = self.pull - self.joint_position(world, 'oven', 'door')
+        pulled = arc(grasp, hinge, y_axis, pull)
+        # Let go, then the closed hand pointing down onto the door's inside near its top,
+        # pressing it the rest of the way along the hinge's arc.
+        top = rotate_about((hinge + door @ [0.0, 0, objects.OVEN_DOOR_HEIGHT - 0.04], grasp[1]),
+                           hinge, y_axis, pull)[0]
+        press = (top + [0, 0, 0.02], grasp_quat(_DOWN, x_axis, flip))
+        let_go = pulled[-1][0] - 0.08 * (quat_to_matrix(pulled[-1][1])[:, 2]), pulled[-1][1]
+        return [Waypoint([(bar - 0.10 * approach, grasp[1])]),
+                Waypoint([grasp], 'close', 'linear'),
+                Waypoint(pulled, 'open', 'via'),
+                Waypoint([let_go], None, 'linear'),
+                Waypoint([(press[0] + [0, 0, 0.10], press[1])], 'close'),
+                Waypoint([press], None, 'linear'),
+                Waypoint(arc(press, hinge, y_axis, self.open_angle - self.pull, hand_turn=0.0), None, 'via')]
+
+
+class PutKnifeOnChoppingBoard(Task):
+    touched_roles = ('knife', 'board')
+    name = 'put_knife_on_chopping_board'
+    phrasings = instructions.TASKS[name].phrasings
+    distance = (0.50, 0.58)
+    lateral = 0.08
+    board_y = -0.16       # the board's centre beside the block, in the task frame
+
+    def build(self, world, rng):
+        origin, _, y_axis = self.frame()
+        block = origin + 0.08 * y_axis
+        self.load(world, 'block', objects.knife_block(), xyz=block)
+        self.load(world, 'board', objects.chopping_board(), xyz=origin + self.board_y * y_axis)
+        _, yaw = self.base_pose
+        handle_z = objects.KNIFE_BLOCK_HEIGHT + objects.KNIFE_HANDLE[2] / 2 + 0.001
+        self.load(world, 'knife', objects.knife(), xyz=block - 0.03 * y_axis + [0, 0, handle_z], yaw=yaw,
+                  fixed=False)
+        world.client.changeDynamics(self.bodies['knife'], -1, lateralFriction=1.0)
+
+    def _on_board(self, world) -> bool:
+        origin, x_axis, y_axis = self.frame()
+        knife = np.array(world.client.getBasePositionAndOrientation(self.bodies['knife'])[0])
+        local = knife - (origin + self.board_y * y_axis)
+        half_x, half_y, thickness = np.array(objects.CHOPPING_BOARD) / 2 * [1, 1, 2]
+        return bool(abs(local @ x_axis) < half_x and abs(local @ y_axis) < half_y
+                    and local[2] < thickness + objects.KNIFE_HANDLE[2])
+
+    def success(self, world):
+        return world.grasped_body() is None and self._on_board(world)
+
+    def waypoints(self, world, flip=False):
+        origin, _, y_axis = self.frame()
+        knife_xyz, knife_quat = world.client.getBasePositionAndOrientation(self.bodies['knife'])
+        handle = np.array(knife_xyz) + [0, 0, 0.006]
+        across = quat_to_matrix(knife_quat)[:, 0]           # fingers close across the handle
+        quat = grasp_quat(_DOWN, across, flip)
+        board = origin + self.board_y * y_axis
+        place = np.array([board[0], board[1], handle[2]]) - [0, 0, objects.KNIFE_BLOCK_HEIGHT
+                                                            - objects.CHOPPING_BOARD[2] - 0.008]
+        place -= 0.08 * y_axis                               # the knife's middle over the board's
+        return [Waypoint([(handle + [0, 0, 0.10], quat)]),
+                Waypoint([(handle, quat)], 'close', 'linear'),
+                Waypoint([(handle + [0, 0, 0.10], quat)], None, 'linear'),
+                Waypoint([(place + [0, 0, 0.08], quat)]),
+                Waypoint([(place, quat)], 'open', 'linear')]
+
+
+TASKS = {cls.name: cls for cls in (ReachTarget, PickUpCup, OpenDrawer, OpenBox, ToiletSeatUp, OpenDoor,
+                                   TakeLidOffSaucepan, OpenGrill, OpenMicrowave, OpenOven,
+                                   PutKnifeOnChoppingBoard)}
 
 
 def make_task(name: str) -> Task:
