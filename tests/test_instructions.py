@@ -1,6 +1,7 @@
 """The tasks' instructions are data both the simulator and the planner read (hdp_msgs_py.instructions)."""
 
 import numpy as np
+import pytest
 
 from hdp_msgs_py import instructions
 from hdp_planner import language
@@ -31,3 +32,13 @@ def test_the_last_phrasing_is_held_out_of_training():
     for name, task in instructions.TASKS.items():
         assert language.training_phrasings(name) + language.heldout_phrasings(name) == task.phrasings
         assert len(language.heldout_phrasings(name)) == 1
+
+
+def test_task_lists_by_name_group_or_comma_list():
+    assert instructions.task_names('all') == list(instructions.TASKS) and len(instructions.TASKS) == 11
+    assert instructions.task_names('first_six') == ['reach_target', 'pick_up_cup', 'open_drawer', 'open_box',
+                                                     'toilet_seat_up', 'open_door']
+    assert instructions.task_names(' open_oven, open_grill ') == ['open_oven', 'open_grill']
+    for bad in ('make_tea', 'open_oven,make_tea', '', ','):
+        with pytest.raises(ValueError, match='unknown task'):
+            instructions.task_names(bad)

@@ -36,7 +36,7 @@ def configure(parser) -> None:
                           '100-step DDPM sampler and the fast sampler (DDIM, unguided), on the same '
                           'evaluation seeds.')
     parser.add_argument('--checkpoint', help='RK-Diffuser checkpoint (default: the released one)')
-    parser.add_argument('--tasks', default='all', help='comma-separated tasks or "all" (default)')
+    parser.add_argument('--tasks', default='all', help='comma-separated tasks, "all" (default) or "first_six"')
     parser.add_argument('--episodes', type=int, default=5, help='episodes per task (default 5)')
     parser.add_argument('--seed-start', type=int, default=3000, help='first evaluation seed (default 3000)')
     parser.add_argument('--fast-steps', type=int, help='DDIM steps (default: policy.FAST_STEPS)')
@@ -48,10 +48,13 @@ def configure(parser) -> None:
 def run(args) -> int:
     import torch
     from hdp_controller.policy import FAST_STEPS, load_policy
-    from hdp_sim_bridge.tasks import TASKS
+    from hdp_msgs_py.instructions import task_names
 
     from .low_level_eval import evaluate
-    tasks = list(TASKS) if args.tasks == 'all' else [t.strip() for t in args.tasks.split(',') if t.strip()]
+    try:
+        tasks = task_names(args.tasks)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
     if args.episodes < 1 or args.threads < 1:
         raise SystemExit('--episodes and --threads must be >= 1')
     torch.set_num_threads(args.threads)

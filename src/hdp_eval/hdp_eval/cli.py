@@ -15,7 +15,7 @@ def configure(parser) -> None:
     """Low-level methods on oracle next-best poses (Table 2): success % / IK-error % per task."""
     parser.add_argument('--methods', default='planner',
                         help=f'comma-separated, of {", ".join(METHODS)} (default planner)')
-    parser.add_argument('--tasks', default='all', help='comma-separated task names, or "all" (default)')
+    parser.add_argument('--tasks', default='all', help='comma-separated task names, "all" (default) or "first_six"')
     parser.add_argument('--episodes', type=int, default=25, help='episodes per task (default 25)')
     parser.add_argument('--seed-start', type=int, required=True,
                         help='first seed; must not overlap the seeds a checkpoint was trained on')
@@ -34,6 +34,14 @@ def configure(parser) -> None:
     parser.set_defaults(func=run)
 
 
+def _tasks(text: str) -> list[str]:
+    from hdp_msgs_py.instructions import task_names
+    try:
+        return task_names(text)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
+
+
 def _names(text: str, known, what: str) -> list[str]:
     names = list(known) if text == 'all' else [n.strip() for n in text.split(',') if n.strip()]
     unknown = [n for n in names if n not in known]
@@ -44,14 +52,13 @@ def _names(text: str, known, what: str) -> list[str]:
 
 def run(args) -> int:
     from hdp_controller.policy import load_policy
-    from hdp_sim_bridge.tasks import TASKS
 
     from .low_level_eval import evaluate, markdown_table
     if args.episodes < 1 or args.workers < 1:
         raise SystemExit('--episodes and --workers must be >= 1')
     if args.seed_start < 0:
         raise SystemExit(f'--seed-start must be >= 0, got {args.seed_start}')
-    tasks = _names(args.tasks, TASKS, 'task')
+    tasks = _tasks(args.tasks)
     if (args.steps is not None and args.steps < 1) or args.refine_steps < 1:
         raise SystemExit('--steps and --refine-steps must be >= 1')
     sampling = dict(steps=args.steps, guidance=args.guidance, refine_steps=args.refine_steps)
@@ -106,7 +113,7 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--agents', default='hdp,nbp_planner,nbp_joint',
                         help='comma-separated: hdp (agent + RK-Diffuser), nbp_planner (agent + planner), '
                              'nbp_joint (agent + joint diffusion); default all three')
-    parser.add_argument('--tasks', default='all', help='comma-separated task names or "all"')
+    parser.add_argument('--tasks', default='all', help='comma-separated task names, "all" or "first_six"')
     parser.add_argument('--episodes', type=int, default=10, help='episodes per task (default 10)')
     parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
     parser.add_argument('--phrasings', default='seen',
@@ -145,10 +152,9 @@ def run_hierarchy(args) -> int:
     from hdp_controller.policy import load_policy
     from hdp_planner.agent import NextBestPoseAgent
     from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, default_checkpoint
-    from hdp_sim_bridge.tasks import TASKS
 
     from .hierarchy_eval import AGENTS, PHRASINGS, evaluate, markdown_table
-    agents, tasks = _names(args.agents, AGENTS, 'agent'), _names(args.tasks, TASKS, 'task')
+    agents, tasks = _names(args.agents, AGENTS, 'agent'), _tasks(args.tasks)
     phrasings = _names('seen,heldout' if args.phrasings == 'both' else args.phrasings, PHRASINGS, 'phrasing')
     reach_tolerance = _reach_tolerance(args.reach_tolerance)
     if args.threads:

@@ -55,6 +55,20 @@ TASKS = {
         'move the knife from the holder to the chopping board')),
 }
 
+# Task lists a --tasks argument may name: 'all', or the six the simulator had first (the
+# figures measured before the other five arrived are over these).
+TASK_GROUPS = {'all': tuple(TASKS), 'first_six': tuple(TASKS)[:6]}
+
+
+def task_names(text: str) -> list[str]:
+    """'all', 'first_six' or comma-separated task names -> the names; ValueError naming the unknown."""
+    names = list(TASK_GROUPS[text]) if text in TASK_GROUPS else [t.strip() for t in text.split(',') if t.strip()]
+    unknown = [n for n in names if n not in TASKS]
+    if unknown or not names:
+        raise ValueError(f'unknown task(s) {unknown or text!r}; tasks: {", ".join(TASKS)} '
+                         f'(or {" / ".join(TASK_GROUPS)})')
+    return names
+
 
 def instruction(task: str, variation: int, phrasings, rng: np.random.Generator) -> str:
     """An instruction for ``variation`` of ``task`` in one of ``phrasings``, drawn with ``rng``."""

@@ -33,7 +33,7 @@ FILLER_WORDS = frozenset({'a', 'an', 'and', 'it', 'of', 'off', 'the', 'to', 'up'
 DEFAULT_CHECKPOINT_NAME = 'hdp_nbp_agent.pt'
 FRAME_LEAD_S = 1.0       # how far a frame's stamp may run ahead of the latest joint state
 # The agent's confidence in its first NBP below which an instruction is refused. Chosen on the
-# validation seeds 900-909 (`hdp eval hierarchy --agents hdp --tasks all --episodes 10 --seed-start 900
+# validation seeds 900-909 (`hdp eval hierarchy --agents hdp --tasks first_six --episodes 10 --seed-start 900
 # --phrasings seen,heldout,nonsense --min-confidence 0`): the highest threshold that refused no
 # seen-phrasing episode that succeeds (it refuses 2% of seen, 7% of nonsense instructions). The
 # confidence separates nonsense poorly (median 0.31 seen, 0.26 nonsense): see the hdp_planner README.

@@ -9,12 +9,11 @@ from pathlib import Path
 
 
 def _tasks(text: str) -> list[str]:
-    from .tasks import TASKS
-    names = list(TASKS) if text == 'all' else [t.strip() for t in text.split(',') if t.strip()]
-    unknown = [n for n in names if n not in TASKS]
-    if unknown:
-        raise SystemExit(f'unknown task(s) {unknown}; tasks: {", ".join(TASKS)} (or "all")')
-    return names
+    from hdp_msgs_py.instructions import task_names
+    try:
+        return task_names(text)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
 
 
 def configure_collect(parser) -> None:
