@@ -24,6 +24,7 @@ from pathlib import Path
 NODES = {'sim_bridge_node': 'hdp_sim_bridge', 'planner_node': 'hdp_planner', 'controller_node': 'hdp_controller'}
 STOP_GRACE_S = 15.0            # for a node to exit after SIGINT, before SIGTERM and then SIGKILL
 ON_EXIT = ('keep', 'shutdown', 'respawn')    # what a node's exit does to the graph
+METHODS = ('rkd', 'planner', 'pose_ik', 'joint')     # controller_node's low levels
 
 
 def default_params_file() -> Path:
@@ -36,6 +37,9 @@ def configure(parser) -> None:
     """Start the HDP graph (sim bridge, planner, controller) as processes; Ctrl-C stops it."""
     parser.add_argument('--params-file', type=Path, default=None,
                         help=f'node parameters (default: {default_params_file()})')
+    parser.add_argument('--task', help="the simulated task (default: the params file's)")
+    parser.add_argument('--seed', help="the scene seed (default: the params file's)")
+    parser.add_argument('--method', help=f"controller_node's low level: {' | '.join(METHODS)}")
     parser.add_argument('--nodes', default=','.join(NODES),
                         help='comma-separated nodes to start (default: all three; '
                              'planner_node,controller_node for a real robot)')
@@ -48,6 +52,26 @@ def configure(parser) -> None:
     parser.add_argument('--respawn-delay', type=float, default=1.0, metavar='S',
                         help='seconds before a respawn (default 1.0)')
     parser.set_defaults(func=run)
+
+
+def launch_overrides(task=None, seed=None, method=None) -> dict[str, dict]:
+    """node -> the parameters the launch arguments set (hdp_graph.launch.py's task, seed, method);
+    ValueError for an unknown task or method or a seed that is not a whole number >= 0."""
+    from hdp_msgs_py.instructions import TASKS
+    overrides: dict[str, dict] = {}
+    if task is not None:
+        if task not in TASKS:
+            raise ValueError(f'unknown task {task!r}; tasks: {", ".join(TASKS)}')
+        overrides.setdefault('sim_bridge_node', {})['task'] = task
+    if seed is not None:
+        if not str(seed).isdigit():
+            raise ValueError(f'seed must be a whole number >= 0, got {seed!r}')
+        overrides.setdefault('sim_bridge_node', {})['seed'] = int(seed)
+    if method is not None:
+        if method not in METHODS:
+            raise ValueError(f'unknown method {method!r}; methods: {", ".join(METHODS)}')
+        overrides['controller_node'] = {'method': method}
+    return overrides
 
 
 def exit_policies(nodes, exit_on_node_exit: bool, respawn) -> dict[str, str]:
@@ -131,7 +155,9 @@ def run(args) -> int:
         return 2
     try:
         nodes = [n.strip() for n in args.nodes.split(',') if n.strip()]
-        commands = node_commands(nodes, params_file, args.param)
+        arguments = [f'{node}:{name}:={value}' for node, values in
+                     launch_overrides(args.task, args.seed, args.method).items() for name, value in values.items()]
+        commands = node_commands(nodes, params_file, arguments + args.param)     # -p has the last word
         policies = exit_policies(nodes, args.exit_on_node_exit, [n.strip() for n in args.respawn.split(',')
                                                                   if n.strip()])
         if args.respawn_delay < 0:

@@ -77,7 +77,7 @@ class ControllerNode(ros.Node):
                                  self.logic.on_depth, topics.SENSOR_QOS)
         self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
                                  lambda m: setattr(self.logic, 'info', m), topics.SENSOR_QOS)
-        self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.LATCHED_QOS)
+        self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.TF_STATIC_QOS)
         self.create_timer(_STEP_S, self._step)
         # On the wall clock: under use_sim_time the timer above stops with the simulator.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))

@@ -90,7 +90,7 @@ def _typestore():
 def _offered_qos(topic: str) -> Qos:
     """The QoS our nodes publish ``topic`` with, so ``ros2 bag play`` offers the same."""
     if topic == topics.TF_STATIC:
-        policies = topics.QOS_POLICIES['LATCHED_QOS']
+        policies = topics.QOS_POLICIES['TF_STATIC_QOS']
     elif topic == topics.STATUS:
         policies = topics.QOS_POLICIES['STATUS_QOS']
     elif topic.startswith('/camera/'):

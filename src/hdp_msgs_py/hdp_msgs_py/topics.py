@@ -61,6 +61,9 @@ QOS_POLICIES = {
     'COMMAND_QOS': QosPolicies(10, 'RELIABLE', 'VOLATILE'),
     'LATCHED_QOS': QosPolicies(1, 'RELIABLE', 'TRANSIENT_LOCAL'),
     'STATUS_QOS': QosPolicies(100, 'RELIABLE', 'TRANSIENT_LOCAL'),
+    # tf2's static listener keeps 100: on a real robot several publishers latch onto /tf_static
+    # (robot_state_publisher, each camera driver, the calibration), and depth 1 would keep one.
+    'TF_STATIC_QOS': QosPolicies(100, 'RELIABLE', 'TRANSIENT_LOCAL'),
 }
 
 

@@ -71,7 +71,7 @@ class PlannerNode(ros.Node):
                     (Image, topics.depth_image(camera), observations.on_depth),
                     (CameraInfo, topics.camera_info(camera), observations.on_info)):
                 self.create_subscription(msg_type, topic, functools.partial(callback, camera), topics.SENSOR_QOS)
-        self.create_subscription(TFMessage, topics.TF_STATIC, observations.on_tf_static, topics.LATCHED_QOS)
+        self.create_subscription(TFMessage, topics.TF_STATIC, observations.on_tf_static, topics.TF_STATIC_QOS)
         self.liveness = Liveness(p['state_timeout_s'])
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
         self.create_subscription(Header, topics.SEGMENT_RESULT,

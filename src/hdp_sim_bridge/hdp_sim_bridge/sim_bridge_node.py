@@ -47,7 +47,7 @@ class SimBridgeNode(ros.Node):
         self._clock_pub = self.create_publisher(Clock, topics.CLOCK, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._joints = self.create_publisher(JointState, topics.JOINT_STATES, topics.COMMAND_QOS)
-        self._tf_static = self.create_publisher(TFMessage, topics.TF_STATIC, topics.LATCHED_QOS)
+        self._tf_static = self.create_publisher(TFMessage, topics.TF_STATIC, topics.TF_STATIC_QOS)
         self._episode = self.create_publisher(String, topics.SIM_EPISODE, topics.LATCHED_QOS)
         self._success = self.create_publisher(Bool, topics.SIM_SUCCESS, 10)
         self._cameras = {name: (self.create_publisher(Image, topics.color_image(name), topics.SENSOR_QOS),

@@ -1,0 +1,97 @@
+"""Launch arguments: task, seed, method and params_file on hdp_graph.launch.py and `hdp launch`."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import pytest
+import yaml
+
+from hdp_bringup.launch_cli import NODES, launch_overrides
+
+LAUNCH_FILE = Path(__file__).resolve().parents[1] / 'src' / 'hdp_bringup' / 'launch' / 'hdp_graph.launch.py'
+
+
+def test_launch_arguments_set_the_parameters_of_the_nodes_they_concern():
+    assert launch_overrides() == {}
+    assert launch_overrides('open_drawer', '3', 'planner') == {
+        'sim_bridge_node': {'task': 'open_drawer', 'seed': 3}, 'controller_node': {'method': 'planner'}}
+    for bad, match in ((('make_tea', None, None), 'unknown task'), ((None, '-1', None), 'whole number'),
+                       ((None, 'x', None), 'whole number'), ((None, None, 'magic'), 'unknown method')):
+        with pytest.raises(ValueError, match=match):
+            launch_overrides(*bad)
+
+
+class _Recorded:
+    """Stands in for a launch action: keeps what it was made with."""
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+
+
+def _fake_launch_modules(monkeypatch, share: Path, arguments: dict) -> None:
+    """The launch and launch_ros API hdp_graph.launch.py uses (not on the package registry)."""
+    class LaunchConfiguration:
+        def __init__(self, name):
+            self.name = name
+
+        def perform(self, context):
+            return context[self.name]
+    modules = {
+        'launch': types.SimpleNamespace(LaunchDescription=lambda actions: list(actions)),
+        'launch.actions': types.SimpleNamespace(DeclareLaunchArgument=_Recorded, OpaqueFunction=_Recorded),
+        'launch.substitutions': types.SimpleNamespace(LaunchConfiguration=LaunchConfiguration),
+        'launch_ros.actions': types.SimpleNamespace(Node=_Recorded),
+        'ament_index_python.packages': types.SimpleNamespace(get_package_share_directory=lambda p: str(share)),
+    }
+    for name, module in modules.items():
+        monkeypatch.setitem(sys.modules, name, module)
+
+
+def _launch_file_nodes(monkeypatch, tmp_path, given: dict) -> tuple[list, dict]:
+    _fake_launch_modules(monkeypatch, tmp_path, given)
+    namespace = {}
+    exec(compile(LAUNCH_FILE.read_text(), str(LAUNCH_FILE), 'exec'), namespace)
+    actions = namespace['generate_launch_description']()
+    declared = {a.args[0]: a.kwargs['default_value'] for a in actions if 'default_value' in a.kwargs}
+    context = {**declared, **given}
+    (nodes_function,) = [a for a in actions if 'function' in a.kwargs]
+    return nodes_function.kwargs['function'](context), declared
+
+
+def test_the_launch_file_declares_its_arguments_and_passes_them_on(monkeypatch, tmp_path):
+    nodes, declared = _launch_file_nodes(monkeypatch, tmp_path, {})
+    assert set(declared) == {'task', 'seed', 'method', 'params_file'}
+    assert declared['params_file'] == str(tmp_path / 'config' / 'hdp_graph.yaml')
+    assert [n.kwargs['name'] for n in nodes] == list(NODES)
+    assert all(n.kwargs['parameters'] == [declared['params_file'], {}] for n in nodes)    # the YAML alone
+
+    nodes, _ = _launch_file_nodes(monkeypatch, tmp_path, {'task': 'open_oven', 'seed': '7', 'method': 'planner',
+                                                         'params_file': '/robot/params.yaml'})
+    parameters = {n.kwargs['name']: n.kwargs['parameters'] for n in nodes}
+    assert parameters == {'sim_bridge_node': ['/robot/params.yaml', {'task': 'open_oven', 'seed': 7}],
+                          'planner_node': ['/robot/params.yaml', {}],
+                          'controller_node': ['/robot/params.yaml', {'method': 'planner'}]}
+
+
+def test_hdp_launch_takes_the_same_arguments(ros_domain):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1')
+    graph = subprocess.Popen([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--nodes', 'sim_bridge_node',
+                              '--task', 'open_oven', '--seed', '7', '-p', 'sim_bridge_node:camera_rate_hz:=0.0'],
+                             env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        echo = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'topic', 'echo', '--once',
+                               '--timeout', '60', '/hdp/sim/episode', 'std_msgs/msg/String'],
+                              env=env, text=True, capture_output=True, timeout=90)
+    finally:
+        graph.send_signal(signal.SIGINT)
+        output, _ = graph.communicate(timeout=30)
+    assert echo.returncode == 0, echo.stderr + output
+    episode = json.loads(yaml.safe_load(echo.stdout.split('\n---')[0])['data'])     # echo prints YAML
+    assert (episode['task'], episode['seed']) == ('open_oven', 7)
+    bad = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--method', 'magic'],
+                         env=env, text=True, capture_output=True, timeout=60)
+    assert bad.returncode == 2 and "unknown method 'magic'" in bad.stderr
