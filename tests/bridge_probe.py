@@ -19,7 +19,7 @@ class Probe(ros.Node):
     def __init__(self):
         super().__init__('bridge_probe')
         self.seen = {'joint_stamps': [], 'status': [], 'episodes': [], 'success': [], 'clock': [],
-                     'images': {}, 'tf': []}
+                     'images': {}, 'tf': [], 'tf_moving': {}, 'robot_description': []}
         self.joints = None
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joints, 50)
         self.create_subscription(String, topics.STATUS, lambda m: self.seen['status'].append(m.data),
@@ -30,7 +30,11 @@ class Probe(ros.Node):
         self.create_subscription(Clock, topics.CLOCK, lambda m: self.seen['clock'].append(
             conversions.time_to_seconds(m.clock)), topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, lambda m: self.seen['tf'].extend(
-            t.child_frame_id for t in m.transforms), topics.LATCHED_QOS)
+            t.child_frame_id for t in m.transforms), topics.TF_STATIC_QOS)
+        self.create_subscription(TFMessage, topics.TF, lambda m: self.seen['tf_moving'].update(
+            {t.child_frame_id: t.header.frame_id for t in m.transforms}), topics.TF_QOS)
+        self.create_subscription(String, topics.ROBOT_DESCRIPTION, lambda m: self.seen['robot_description'].append(
+            m.data), topics.LATCHED_QOS)
         for topic, kind in ((topics.color_image('front'), Image), (topics.depth_image('side'), Image),
                             (topics.camera_info('front'), CameraInfo)):
             self.create_subscription(kind, topic, lambda m, t=topic: self.seen['images'].__setitem__(t, (
@@ -55,7 +59,8 @@ def main():
     probe = Probe()
     facts = {}
     probe.spin_for(30, until=lambda: probe.joints is not None and probe.seen['episodes']
-                   and len(probe.seen['images']) == 3 and probe.seen['tf']
+                   and len(probe.seen['images']) == 3 and len(set(probe.seen['tf'])) >= 6
+                   and probe.seen['tf_moving'] and probe.seen['robot_description']
                    and all(p.get_subscription_count() for p in (probe.arm, probe.gripper, probe.reset)))
     facts['first_episode'] = probe.seen['episodes'][-1]
     start = probe.joints.copy()
@@ -92,7 +97,8 @@ def main():
         last_episode=probe.seen['episodes'][-1],
         joint_state_hz=float(1.0 / np.median(rising[rising > 0])),
         clock_advances=bool(len(probe.seen['clock']) > 10 and probe.seen['clock'][-1] > probe.seen['clock'][0]),
-        images=probe.seen['images'], tf=sorted(set(probe.seen['tf'])),
+        images=probe.seen['images'], tf=sorted(set(probe.seen['tf'])), tf_moving=probe.seen['tf_moving'],
+        robot_description=probe.seen['robot_description'][-1][:2000] if probe.seen['robot_description'] else '',
         status=probe.seen['status'], success_reports=len(probe.seen['success']))
     print(json.dumps(facts), flush=True)
     probe.destroy_node()

@@ -107,7 +107,8 @@ def test_every_required_type_is_defined():
     sensor_msgs/msg/CameraInfo sensor_msgs/msg/RegionOfInterest sensor_msgs/msg/JointState
     trajectory_msgs/msg/JointTrajectory trajectory_msgs/msg/JointTrajectoryPoint
     tf2_msgs/msg/TFMessage rosgraph_msgs/msg/Clock rmw_dds_common/msg/Gid
-    rmw_dds_common/msg/NodeEntitiesInfo rmw_dds_common/msg/ParticipantEntitiesInfo""".split()
+    rmw_dds_common/msg/NodeEntitiesInfo rmw_dds_common/msg/ParticipantEntitiesInfo
+    visualization_msgs/msg/Marker sensor_msgs/msg/PointCloud2 std_msgs/msg/ColorRGBA""".split()
     assert set(required) <= set(ALL_TYPES)
     assert get_message('sensor_msgs/msg/Image')._dds_type_name == 'sensor_msgs::msg::dds_::Image_'
 

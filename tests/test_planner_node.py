@@ -393,6 +393,7 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
     for segment in facts['segments']:
         assert segment['gripper_stamp'] == segment['stamp'] and segment['frame'] == 'world'
         assert segment['in_workspace'] and segment['gripper_width'] in (0.0, panda.GRIPPER_OPEN_WIDTH)
+        assert segment['tf_frame'] == 'hdp_next_best_pose' and np.allclose(segment['marker_tip'], segment['xyz'])
     assert facts['segments'][1]['stamp'] > facts['segments'][0]['stamp']
     status = [s for s in facts['status'] if s.startswith('planner_node')]
     done = r'planner_node: segment {}: pose \(-?[\d.]+, -?[\d.]+, [\d.]+\) gripper (open|close) -> done in [\d.]+ s'
@@ -540,13 +541,16 @@ def listen(expect: int, seconds: float, *instructions: str) -> None:
 def controller() -> None:
     """Stand in for controller_node: answer each NBP 'done' after a moment; report what came."""
     from hdp_msgs_py import workspace
-    from hdp_msgs_py.msg import PoseStamped, String
+    from hdp_msgs_py.msg import Marker, PoseStamped, String, TFMessage
     node, status = _node('fake_controller')
     goals, poses, outcomes = {}, [], []
     node.create_subscription(String, topics.OUTCOME, lambda m: outcomes.append(json.loads(m.data)), 10)
     node.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
                              lambda m: goals.__setitem__(conversions.time_to_seconds(m.header.stamp), m), 10)
     node.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, poses.append, 10)
+    markers, frames = [], []                      # what RViz and Foxglove draw
+    node.create_subscription(Marker, topics.NEXT_BEST_POSE_MARKER, markers.append, 10)
+    node.create_subscription(TFMessage, topics.TF, lambda m: frames.extend(m.transforms), topics.TF_QOS)
     results = node.create_publisher(Header, topics.SEGMENT_RESULT, 10)
     instruction = node.create_publisher(String, topics.INSTRUCTION, 10)
     assert _spin(node, 60, lambda: instruction.get_subscription_count() > 0 and results.get_subscription_count() > 0
@@ -561,7 +565,11 @@ def controller() -> None:
         _spin(node, 0.3)
         goal = goals.get(stamp)
         xyz, _ = conversions.pose_to_xyz_quat(pose)
-        segments.append({'stamp': stamp, 'frame': pose.header.frame_id, 'gripper_stamp': stamp if goal else None,
+        marker = next((m for m in markers if m.header.stamp == pose.header.stamp), None)
+        frame = next((t for t in frames if t.header.stamp == pose.header.stamp), None)
+        segments.append({'marker_tip': [marker.points[1].x, marker.points[1].y, marker.points[1].z] if marker else None,
+                         'tf_frame': frame.child_frame_id if frame else None, 'xyz': xyz.tolist(),
+                         'stamp': stamp, 'frame': pose.header.frame_id, 'gripper_stamp': stamp if goal else None,
                          'gripper_width': float(goal.position[0]) if goal else None,
                          'in_workspace': bool(workspace.in_workspace(xyz[None], above_table=0.0)[0])})
         results.publish(Header(stamp=pose.header.stamp, frame_id=topics.SEGMENT_DONE))

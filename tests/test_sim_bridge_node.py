@@ -35,7 +35,16 @@ def test_bridge_node_end_to_end(ros_domain):
     assert facts['images'] == {'/camera/front/color/image_raw': ['rgb8', 64, 48],
                                '/camera/side/aligned_depth_to_color/image_raw': ['16UC1', 64, 48],
                                '/camera/front/color/camera_info': ['info', 64, 48]}
-    assert facts['tf'] == ['front_color_optical_frame', 'side_color_optical_frame']
+    # Both latched /tf_static messages (the cameras' extrinsics, then the arm's fixed joints)
+    # reach a subscriber that joined later; movable joints come on /tf, parent -> child.
+    assert facts['tf'] == ['front_color_optical_frame', 'panda_grasptarget', 'panda_hand', 'panda_link0',
+                           'panda_link8', 'side_color_optical_frame']
+    assert facts['tf_moving'] == {'panda_link1': 'panda_link0', 'panda_link2': 'panda_link1',
+                                  'panda_link3': 'panda_link2', 'panda_link4': 'panda_link3',
+                                  'panda_link5': 'panda_link4', 'panda_link6': 'panda_link5',
+                                  'panda_link7': 'panda_link6', 'panda_leftfinger': 'panda_hand',
+                                  'panda_rightfinger': 'panda_hand'}
+    assert '<robot name="panda"' in facts['robot_description'] and 'package://' not in facts['robot_description']
     status = '\n'.join(facts['status'])
     assert 'rejected arm trajectory' in status and 'above its limit' in status
     assert "unknown: ['elbow']" in status
@@ -87,3 +96,42 @@ def test_a_bad_first_episode_stops_the_node_at_start_with_one_line(ros_domain):
     assert proc.returncode == 1, proc.stderr
     assert 'bad first episode: open_drawer has variations 0..2, got 7' in proc.stderr
     assert 'Traceback' not in proc.stderr
+
+
+def test_link_transforms_chain_to_the_simulators_hand_pose_and_the_urdf_loads():
+    """world -> panda_link0 -> ... -> panda_hand composed from the TF messages is where PyBullet
+    has the hand, with the arm away from its home; the description's meshes exist."""
+    import xml.etree.ElementTree as ET
+    from urllib.parse import urlparse
+
+    import numpy as np
+
+    from hdp_motion import panda
+    from hdp_msgs_py.conversions import quat_to_matrix
+    from hdp_sim_bridge.bridge import SimBridge
+    from hdp_sim_bridge.robot_state import robot_description
+
+    def matrix(t):
+        m = np.eye(4)
+        r, q = t.transform.translation, t.transform.rotation
+        m[:3, :3], m[:3, 3] = quat_to_matrix([q.x, q.y, q.z, q.w]), [r.x, r.y, r.z]
+        return m
+    bridge = SimBridge(32, 24)
+    try:
+        bridge.reset('reach_target', 0)
+        bridge.world.reset_arm(panda.HOME + np.array([0.3, -0.2, 0.1, 0.2, -0.3, 0.2, 0.4]))
+        transforms = {t.child_frame_id: t for t in bridge.robot_tf_static().transforms + bridge.robot_tf().transforms}
+        frame, pose = 'panda_hand', np.eye(4)
+        while frame != 'world':
+            pose = matrix(transforms[frame]) @ pose
+            frame = transforms[frame].header.frame_id
+        state = bridge.world.client.getLinkState(bridge.world.robot, 8, computeForwardKinematics=True)
+        assert np.allclose(pose[:3, 3], state[4], atol=1e-6)
+        assert np.allclose(pose[:3, :3], quat_to_matrix(state[5]), atol=1e-6)
+    finally:
+        bridge.close()
+    urdf = ET.fromstring(robot_description())
+    links = {link.get('name') for link in urdf.iter('link')}
+    assert set(transforms) <= links | {'panda_link0'}
+    meshes = [urlparse(m.get('filename')) for m in urdf.iter('mesh')]
+    assert meshes and all(m.scheme == 'file' and Path(m.path).is_file() for m in meshes)

@@ -13,13 +13,15 @@ import importlib
 _TYPES = {
     'builtin_interfaces': ['Time', 'Duration'],
     'std_msgs': ['Header', 'String', 'Bool', 'Float64', 'Int32', 'Empty',
-                 'Float64MultiArray', 'MultiArrayLayout', 'MultiArrayDimension'],
+                 'Float64MultiArray', 'MultiArrayLayout', 'MultiArrayDimension', 'ColorRGBA'],
     'geometry_msgs': ['Point', 'Quaternion', 'Vector3', 'Pose', 'PoseArray', 'PoseStamped',
                       'Transform', 'TransformStamped'],
-    'sensor_msgs': ['Image', 'CameraInfo', 'RegionOfInterest', 'JointState'],
+    'sensor_msgs': ['Image', 'CameraInfo', 'RegionOfInterest', 'JointState', 'CompressedImage',
+                    'PointCloud2', 'PointField'],
     'trajectory_msgs': ['JointTrajectory', 'JointTrajectoryPoint'],
     'tf2_msgs': ['TFMessage'],
     'rosgraph_msgs': ['Clock'],
+    'visualization_msgs': ['Marker', 'MeshFile', 'UVCoordinate'],
 }
 
 

@@ -10,10 +10,13 @@ INSTRUCTION = '/hdp/instruction'
 STATUS = '/hdp/status'
 OUTCOME = '/hdp/outcome'            # std_msgs/String JSON, see hdp_msgs_py.outcome
 NEXT_BEST_POSE = '/hdp/next_best_pose'
+NEXT_BEST_POSE_MARKER = '/hdp/next_best_pose_marker'   # visualization_msgs/Marker, for RViz/Foxglove
 JOINT_STATES = '/joint_states'
 ARM_TRAJECTORY = '/panda_arm_controller/joint_trajectory'
 GRIPPER_TRAJECTORY = '/panda_gripper_controller/joint_trajectory'
 TF_STATIC = '/tf_static'
+TF = '/tf'
+ROBOT_DESCRIPTION = '/robot_description'   # std_msgs/String URDF, latched (the sim's; robot_state_publisher's on a robot)
 CLOCK = '/clock'
 CAMERAS = ('front', 'side')
 # The simulator's episode control (sim_bridge_node only; a real robot has none).
@@ -64,6 +67,7 @@ QOS_POLICIES = {
     # tf2's static listener keeps 100: on a real robot several publishers latch onto /tf_static
     # (robot_state_publisher, each camera driver, the calibration), and depth 1 would keep one.
     'TF_STATIC_QOS': QosPolicies(100, 'RELIABLE', 'TRANSIENT_LOCAL'),
+    'TF_QOS': QosPolicies(100, 'RELIABLE', 'VOLATILE'),         # tf2's
 }
 
 

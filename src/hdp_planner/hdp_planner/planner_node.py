@@ -16,8 +16,9 @@ from rclpy.clock import Clock, ClockType
 from hdp_motion import panda
 from hdp_msgs_py import ros, topics
 from hdp_msgs_py.liveness import Liveness
-from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, PoseStamped, String, TFMessage
+from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, Marker, PoseStamped, String, TFMessage
 
+from . import visualisation
 from .agent import NextBestPoseAgent
 from .planner_logic import DEFAULT_MIN_CONFIDENCE, Observations, PlannerLoop, default_checkpoint
 
@@ -63,6 +64,9 @@ class PlannerNode(ros.Node):
             'gripper_goal': self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS),
             'outcome': self.create_publisher(String, topics.OUTCOME, topics.COMMAND_QOS),
         }
+        # For RViz and Foxglove: the NBP as a TF frame and an arrow.
+        self._tf = self.create_publisher(TFMessage, topics.TF, topics.TF_QOS)
+        self._marker = self.create_publisher(Marker, topics.NEXT_BEST_POSE_MARKER, topics.COMMAND_QOS)
         self.create_subscription(String, topics.INSTRUCTION,
                                  lambda m: self._send(self.loop.on_instruction(m.data, self._now())), 10)
         for camera in topics.CAMERAS:
@@ -102,6 +106,7 @@ class PlannerNode(ros.Node):
             self.liveness.excuse(time.monotonic())
 
     def _send(self, outputs):
+        goals = [msg for kind, msg in outputs if kind == 'gripper_goal']
         for kind, msg in outputs:
             if kind in ('info', 'error'):
                 self.status.say(kind, msg)
@@ -109,6 +114,9 @@ class PlannerNode(ros.Node):
                 self._outputs[kind].publish(String(data=msg.to_json()))
             else:
                 self._outputs[kind].publish(msg)
+            if kind == 'nbp':
+                self._tf.publish(TFMessage(transforms=[visualisation.nbp_transform(msg)]))
+                self._marker.publish(visualisation.nbp_marker(msg, visualisation.opens(goals[0]) if goals else True))
 
 
 def main(args=None):

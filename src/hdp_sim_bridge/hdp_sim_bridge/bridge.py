@@ -13,11 +13,12 @@ import numpy as np
 
 from hdp_motion import panda
 from hdp_msgs_py import conversions, instructions
-from hdp_msgs_py.msg import Clock, Header, TFMessage
+from hdp_msgs_py.msg import Clock, Header, TFMessage, Time
 
 from .cameras import default_cameras
 from .collect import joint_state
 from .experts import reachable_scene
+from .robot_state import LinkTransforms
 from .tasks import TASKS
 from .trajectory_follower import accept
 from .world import TIME_STEP, PandaWorld
@@ -78,6 +79,7 @@ class SimBridge:
         self.task = None
         self.episode: dict = {}
         self.trajectory = None
+        self._link_transforms = None
 
     def reset(self, task_name: str, seed: int, variation: int | None = None) -> dict:
         """A new episode; returns {task, seed, variation, instruction}. A ValueError leaves the
@@ -130,7 +132,21 @@ class SimBridge:
         return joint_state(self.world, self.sim_time)
 
     def tf_static(self) -> TFMessage:
+        """The cameras' extrinsics (world -> optical frame), as a real setup's calibration gives them."""
         return TFMessage(transforms=[c.transform_stamped() for c in self.cameras.values()])
+
+    def robot_tf_static(self) -> TFMessage:
+        """world -> panda_link0 and the arm's fixed joints, as robot_state_publisher latches them."""
+        return TFMessage(transforms=self._links().static(Time()))
+
+    def robot_tf(self) -> TFMessage:
+        """The arm's and fingers' movable joints now, as robot_state_publisher sends them on /tf."""
+        return TFMessage(transforms=self._links().moving(conversions.seconds_to_time(self.sim_time)))
+
+    def _links(self) -> LinkTransforms:
+        if self._link_transforms is None or self._link_transforms.robot != self.world.robot:
+            self._link_transforms = LinkTransforms(self.world.client_id, self.world.robot)
+        return self._link_transforms
 
     def camera_messages(self, name: str):
         """(colour rgb8 Image, depth 16UC1 Image, CameraInfo) of one camera, now."""

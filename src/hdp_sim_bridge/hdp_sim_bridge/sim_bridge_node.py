@@ -13,6 +13,7 @@ from hdp_msgs_py import ros, topics
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
 
 from .bridge import SimBridge, parse_reset
+from .robot_state import robot_description
 from .world import TIME_STEP
 
 _MAX_STEPS_PER_TICK = 48              # catch up at most 0.2 s of sim time per tick
@@ -48,6 +49,8 @@ class SimBridgeNode(ros.Node):
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._joints = self.create_publisher(JointState, topics.JOINT_STATES, topics.COMMAND_QOS)
         self._tf_static = self.create_publisher(TFMessage, topics.TF_STATIC, topics.TF_STATIC_QOS)
+        self._tf = self.create_publisher(TFMessage, topics.TF, topics.TF_QOS)
+        self._robot_description = self.create_publisher(String, topics.ROBOT_DESCRIPTION, topics.LATCHED_QOS)
         self._episode = self.create_publisher(String, topics.SIM_EPISODE, topics.LATCHED_QOS)
         self._success = self.create_publisher(Bool, topics.SIM_SUCCESS, 10)
         self._cameras = {name: (self.create_publisher(Image, topics.color_image(name), topics.SENSOR_QOS),
@@ -60,7 +63,11 @@ class SimBridgeNode(ros.Node):
         self.create_subscription(String, topics.SIM_CAMERAS, self._on_cameras, 10)
 
         self._reset(p['task'], p['seed'], None if p['variation'] < 0 else p['variation'])
+        # Two latched messages, as a robot's calibration and robot_state_publisher each send
+        # theirs; depth 100 keeps both for whoever joins later.
         self._tf_static.publish(self.bridge.tf_static())
+        self._tf_static.publish(self.bridge.robot_tf_static())
+        self._robot_description.publish(String(data=robot_description()))
         self.create_timer(0.005, self._tick)
         self.create_timer(0.5, lambda: self._success.publish(Bool(data=self.bridge.success())))
 
@@ -117,6 +124,7 @@ class SimBridgeNode(ros.Node):
             if self._steps % self._joint_every == 0:
                 self._clock_pub.publish(self.bridge.clock())
                 self._joints.publish(self.bridge.joint_state())
+                self._tf.publish(self.bridge.robot_tf())
             if self._camera_every and self._steps % self._camera_every == 0:
                 for name in self.bridge.publishing:
                     for publisher, message in zip(self._cameras[name], self.bridge.camera_messages(name)):
