@@ -379,7 +379,7 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
                                 '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'max_segments:=2',
-                                '-p', 'camera_timeout_s:=20.0',
+                                '-p', 'camera_timeout_s:=20.0', '-p', 'publish_cloud:=true',
                                 '-p', 'min_confidence:=0.0'],     # untrained: its confidence means nothing
                                env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
@@ -394,6 +394,7 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
         assert segment['gripper_stamp'] == segment['stamp'] and segment['frame'] == 'world'
         assert segment['in_workspace'] and segment['gripper_width'] in (0.0, panda.GRIPPER_OPEN_WIDTH)
         assert segment['tf_frame'] == 'hdp_next_best_pose' and np.allclose(segment['marker_tip'], segment['xyz'])
+    assert facts['clouds'] >= 2 and facts['cloud_points'] > 100 and facts['cloud_in_workspace']
     assert facts['segments'][1]['stamp'] > facts['segments'][0]['stamp']
     status = [s for s in facts['status'] if s.startswith('planner_node')]
     done = r'planner_node: segment {}: pose \(-?[\d.]+, -?[\d.]+, [\d.]+\) gripper (open|close) -> done in [\d.]+ s'
@@ -541,15 +542,16 @@ def listen(expect: int, seconds: float, *instructions: str) -> None:
 def controller() -> None:
     """Stand in for controller_node: answer each NBP 'done' after a moment; report what came."""
     from hdp_msgs_py import workspace
-    from hdp_msgs_py.msg import Marker, PoseStamped, String, TFMessage
+    from hdp_msgs_py.msg import Marker, PointCloud2, PoseStamped, String, TFMessage
     node, status = _node('fake_controller')
     goals, poses, outcomes = {}, [], []
     node.create_subscription(String, topics.OUTCOME, lambda m: outcomes.append(json.loads(m.data)), 10)
     node.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
                              lambda m: goals.__setitem__(conversions.time_to_seconds(m.header.stamp), m), 10)
     node.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, poses.append, 10)
-    markers, frames = [], []                      # what RViz and Foxglove draw
+    markers, frames, clouds = [], [], []          # what RViz and Foxglove draw
     node.create_subscription(Marker, topics.NEXT_BEST_POSE_MARKER, markers.append, 10)
+    node.create_subscription(PointCloud2, topics.PLANNER_CLOUD, clouds.append, topics.SENSOR_QOS)
     node.create_subscription(TFMessage, topics.TF, lambda m: frames.extend(m.transforms), topics.TF_QOS)
     results = node.create_publisher(Header, topics.SEGMENT_RESULT, 10)
     instruction = node.create_publisher(String, topics.INSTRUCTION, 10)
@@ -574,7 +576,10 @@ def controller() -> None:
                          'in_workspace': bool(workspace.in_workspace(xyz[None], above_table=0.0)[0])})
         results.publish(Header(stamp=pose.header.stamp, frame_id=topics.SEGMENT_DONE))
     _spin(node, 15, lambda: outcomes and any('segments done' in s for s in status))
-    print(json.dumps({'segments': segments, 'status': status, 'outcomes': outcomes}), flush=True)
+    xyz, _ = conversions.pointcloud2_to_cloud(clouds[-1]) if clouds else (np.zeros((0, 3)), None)
+    print(json.dumps({'segments': segments, 'status': status, 'outcomes': outcomes, 'clouds': len(clouds),
+                      'cloud_points': len(xyz), 'cloud_in_workspace': bool(workspace.in_workspace(xyz).all())}),
+          flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
 

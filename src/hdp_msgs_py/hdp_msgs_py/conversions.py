@@ -19,8 +19,8 @@ import math
 
 import numpy as np
 
-from .msg import (CameraInfo, Duration, Header, Image, JointTrajectory, JointTrajectoryPoint,
-                  Point, Pose, PoseStamped, Quaternion, Time, Transform, Vector3)
+from .msg import (CameraInfo, Duration, Header, Image, JointTrajectory, JointTrajectoryPoint, Point,
+                  PointCloud2, PointField, Pose, PoseStamped, Quaternion, Time, Transform, Vector3)
 
 _NS_PER_S = 1_000_000_000
 _INT32 = (-2 ** 31, 2 ** 31 - 1)
@@ -467,3 +467,34 @@ def parse_joint_trajectory(msg) -> tuple[list[str], np.ndarray, np.ndarray, np.n
     positions = np.array([np.asarray(p.positions, dtype=np.float64) for p in msg.points])
     times = [duration_to_seconds(p.time_from_start) for p in msg.points]
     return _check_trajectory(msg.joint_names, positions.reshape(len(times), joints), times, velocities)
+
+
+# PCL's layout, which RViz and Foxglove colour by: x, y, z float32, then rgb as the bytes of a
+# uint32 0x00RRGGBB read as a float32.
+_CLOUD_FIELDS = (('x', 0), ('y', 4), ('z', 8), ('rgb', 12))
+_FLOAT32 = 7          # sensor_msgs/PointField.FLOAT32
+
+
+def cloud_to_pointcloud2(xyz, colours, header) -> PointCloud2:
+    """xyz (N, 3) m and colours (N, 3) uint8 -> an unordered sensor_msgs/PointCloud2 (x, y, z, rgb)."""
+    xyz = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
+    colours = np.asarray(colours, dtype=np.uint8).reshape(-1, 3)
+    if len(xyz) != len(colours):
+        raise ValueError(f'{len(xyz)} points but {len(colours)} colours')
+    packed = (colours[:, 0].astype(np.uint32) << 16) | (colours[:, 1].astype(np.uint32) << 8) | colours[:, 2]
+    data = np.concatenate([xyz.view(np.uint32), packed[:, None]], axis=1).astype('<u4')
+    return PointCloud2(header=header, height=1, width=len(xyz), is_bigendian=False, point_step=16,
+                       row_step=16 * len(xyz), is_dense=True, data=array.array('B', data.tobytes()),
+                       fields=[PointField(name=name, offset=offset, datatype=_FLOAT32, count=1)
+                               for name, offset in _CLOUD_FIELDS])
+
+
+def pointcloud2_to_cloud(msg) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of cloud_to_pointcloud2: (xyz (N, 3) float32, colours (N, 3) uint8)."""
+    if [(f.name, f.offset, f.datatype) for f in msg.fields] != [(n, o, _FLOAT32) for n, o in _CLOUD_FIELDS] \
+            or msg.point_step != 16 or msg.is_bigendian:
+        raise ValueError('expected little-endian x, y, z, rgb float32 fields, 16 bytes a point')
+    words = np.frombuffer(bytes(msg.data), dtype='<u4').reshape(-1, 4)
+    rgb = words[:, 3]
+    colours = np.stack([(rgb >> 16) & 255, (rgb >> 8) & 255, rgb & 255], axis=1).astype(np.uint8)
+    return words[:, :3].copy().view(np.float32), colours

@@ -11,6 +11,7 @@ STATUS = '/hdp/status'
 OUTCOME = '/hdp/outcome'            # std_msgs/String JSON, see hdp_msgs_py.outcome
 NEXT_BEST_POSE = '/hdp/next_best_pose'
 NEXT_BEST_POSE_MARKER = '/hdp/next_best_pose_marker'   # visualization_msgs/Marker, for RViz/Foxglove
+PLANNER_CLOUD = '/hdp/planner/cloud'      # sensor_msgs/PointCloud2: what the agent saw (publish_cloud)
 JOINT_STATES = '/joint_states'
 ARM_TRAJECTORY = '/panda_arm_controller/joint_trajectory'
 GRIPPER_TRAJECTORY = '/panda_gripper_controller/joint_trajectory'

@@ -19,12 +19,14 @@ from .voxels import collate_clouds, scene_points
 
 
 class NextBestPose(NamedTuple):
-    """xyz (3,) m and quat (4,) xyzw in the world frame, the gripper action after arriving, and
-    confidence in [0, 1] (probability of the chosen coarse voxel x that of the fine one)."""
+    """xyz (3,) m and quat (4,) xyzw in the world frame, the gripper action after arriving,
+    confidence in [0, 1] (probability of the chosen coarse voxel x that of the fine one), and
+    the cloud it was predicted from: xyz (N, 3) float32 m in the world, colours (N, 3) uint8."""
     xyz: np.ndarray
     quat: np.ndarray
     gripper_open: bool
     confidence: float
+    cloud: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class NextBestPoseAgent:
@@ -57,9 +59,10 @@ class NextBestPoseAgent:
             intrinsics[camera] = info if isinstance(info, Intrinsics) else camera_info_to_intrinsics(info)
             transform = camera_to_world[camera]
             to_world[camera] = transform if isinstance(transform, np.ndarray) else transform_to_matrix(transform)
-        xyz, rgb, cloud = collate_clouds([scene_points(frames, intrinsics, to_world)], self.device)
+        points = scene_points(frames, intrinsics, to_world)
+        xyz, rgb, cloud = collate_clouds([points], self.device)
         joint_positions, gripper_open = proprio
         proprio_tensor = torch.as_tensor(proprio_vector(joint_positions, gripper_open)[None], device=self.device)
         prediction = self.model.predict(xyz, rgb, cloud, [instruction], proprio_tensor)
         return NextBestPose(prediction.xyz[0].cpu().numpy().astype(np.float64), prediction.quat[0],
-                            bool(prediction.gripper_open[0]), float(prediction.confidence[0]))
+                            bool(prediction.gripper_open[0]), float(prediction.confidence[0]), points)

@@ -178,6 +178,7 @@ class PlannerLoop:
         self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s
         self.observations = observations or Observations()
         self.instruction: str | None = None
+        self.last_cloud = None          # the latest prediction's cloud (xyz, colours), for a viewer
         self.queued: str | None = None
         self.segment: Segment | None = None       # sent, result not yet back
         self.count = 0                            # segments sent for this instruction
@@ -276,6 +277,7 @@ class PlannerLoop:
             nbp = self.agent.predict(*self.observations.agent_inputs(), self.instruction, (q, self.gripper_open))
         except (ValueError, RuntimeError) as err:       # bad frames or joint states; torch shape errors
             return self._stop(f'cannot predict a next-best pose: {err}', now_s, 'failed')
+        self.last_cloud = nbp.cloud
         if self.count == 0 and nbp.confidence < self.min_confidence:
             return self._stop(f'refused: the agent cannot ground it (its first next-best pose has confidence '
                               f'{nbp.confidence:.2f}, below min_confidence {self.min_confidence:.2f})', now_s,

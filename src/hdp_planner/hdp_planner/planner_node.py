@@ -14,9 +14,10 @@ import time
 from rclpy.clock import Clock, ClockType
 
 from hdp_motion import panda
-from hdp_msgs_py import ros, topics
+from hdp_msgs_py import conversions, ros, topics
 from hdp_msgs_py.liveness import Liveness
-from hdp_msgs_py.msg import Bool, CameraInfo, Header, Image, JointState, Marker, PoseStamped, String, TFMessage
+from hdp_msgs_py.msg import (Bool, CameraInfo, Header, Image, JointState, Marker, PointCloud2, PoseStamped, String,
+                             TFMessage)
 
 from . import visualisation
 from .agent import NextBestPoseAgent
@@ -35,6 +36,7 @@ class PlannerNode(ros.Node):
         'min_confidence': (DEFAULT_MIN_CONFIDENCE, "an instruction whose first NBP is less confident is refused"),
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before an instruction fails'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
+        'publish_cloud': (False, 'publish the cloud each prediction saw on /hdp/planner/cloud (for a viewer)'),
     }
 
     def __init__(self):
@@ -67,6 +69,8 @@ class PlannerNode(ros.Node):
         # For RViz and Foxglove: the NBP as a TF frame and an arrow.
         self._tf = self.create_publisher(TFMessage, topics.TF, topics.TF_QOS)
         self._marker = self.create_publisher(Marker, topics.NEXT_BEST_POSE_MARKER, topics.COMMAND_QOS)
+        self._cloud = (self.create_publisher(PointCloud2, topics.PLANNER_CLOUD, topics.SENSOR_QOS)
+                       if p['publish_cloud'] else None)
         self.create_subscription(String, topics.INSTRUCTION,
                                  lambda m: self._send(self.loop.on_instruction(m.data, self._now())), 10)
         for camera in topics.CAMERAS:
@@ -102,6 +106,10 @@ class PlannerNode(ros.Node):
         started = time.monotonic()
         now = self.get_clock().now().nanoseconds
         self._send(self.loop.step(now * 1e-9, now))
+        if self._cloud is not None and self.loop.last_cloud is not None:
+            header = Header(stamp=self.get_clock().now().to_msg(), frame_id=topics.NBP_FRAME)
+            self._cloud.publish(conversions.cloud_to_pointcloud2(*self.loop.last_cloud, header))
+            self.loop.last_cloud = None
         if time.monotonic() - started > _WATCH_S:      # a slow prediction: no message was taken meanwhile
             self.liveness.excuse(time.monotonic())
 
