@@ -486,3 +486,13 @@ def probe() -> None:
 
 if __name__ == '__main__' and sys.argv[1:2] == ['probe']:
     probe()
+
+
+def test_controller_node_refuses_an_unknown_robot_type_at_start_with_one_line(ros_domain):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
+    proc = subprocess.run([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                           '-p', 'method:=planner', '-p', 'robot_type:=ur5'],
+                          env=env, text=True, capture_output=True, timeout=60)
+    assert proc.returncode == 1
+    assert "parameter 'robot_type': unknown robot type 'ur5'; robot types: panda, fr3" in proc.stderr
+    assert 'Traceback' not in proc.stderr

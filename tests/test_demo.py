@@ -256,7 +256,7 @@ def test_ctrl_c_stops_every_node_and_exits_130(tmp_path, ros_domain):
 
 def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     out = tmp_path / 'demo'
-    proc = subprocess.run(_hdp('demo', '--task', 'reach_target', '--seed', '1000', '--out', str(out)),
+    proc = subprocess.run(_hdp('demo', '--task', 'reach_target', '--seed', '1000', '--out', str(out), '--record'),
                           env=_env(ros_domain), capture_output=True, text=True, timeout=240)
     text = proc.stdout + proc.stderr
     assert proc.returncode == 0, text
@@ -279,3 +279,19 @@ def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
         assert png.format == 'PNG'
     assert (out / episode['plot']).stat().st_size > 30_000
     assert all((out / 'logs' / f'{name}.log').is_file() for name in cli.NODES)
+
+    # The recording: every topic a viewer needs, readable by plain rosbags, the robot moving.
+    from rosbags.highlevel import AnyReader
+    from hdp_bringup.demo.recording import RECORDED
+    with AnyReader([out / 'bag']) as reader:
+        assert {c.topic for c in reader.connections} == set(RECORDED)
+        seen, tf_times, joint1 = set(), [], []
+        for connection, _, raw in reader.messages():
+            msg = reader.deserialize(raw, connection.msgtype)
+            seen.add(connection.topic)
+            if connection.topic == '/tf':
+                (link1,) = [t for t in msg.transforms if t.child_frame_id == 'panda_link1']
+                joint1.append(link1.transform.rotation.z)
+    missing = set(RECORDED) - seen - {'/hdp/planner/cloud'}        # the cloud only with publish_cloud
+    assert not missing, missing
+    assert len(joint1) > 100 and max(joint1) - min(joint1) > 1e-3     # the arm turned

@@ -95,3 +95,25 @@ def test_hdp_launch_takes_the_same_arguments(ros_domain):
     bad = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--method', 'magic'],
                          env=env, text=True, capture_output=True, timeout=60)
     assert bad.returncode == 2 and "unknown method 'magic'" in bad.stderr
+
+
+def test_the_viewer_configs_name_topics_the_graph_publishes():
+    """hdp.rviz and the Foxglove layout show only topics hdp demo --record records."""
+    import re
+
+    from hdp_bringup.demo.recording import RECORDED
+    config = LAUNCH_FILE.parents[1] / 'config'
+    rviz = yaml.safe_load((config / 'hdp.rviz').read_text())
+    displays = rviz['Visualization Manager']['Displays']
+    rviz_topics = {d['Topic']['Value'] for d in displays if 'Topic' in d}
+    rviz_topics |= {d['Description Topic']['Value'] for d in displays if 'Description Topic' in d}
+    assert rviz['Visualization Manager']['Global Options']['Fixed Frame'] == 'world'
+    layout = json.loads((config / 'hdp_foxglove_layout.json').read_text())
+    foxglove_topics = set(layout['configById']['3D!hdp']['topics'])
+    foxglove_topics |= {panel['imageMode']['imageTopic'] for panel in layout['configById'].values()
+                        if 'imageMode' in panel}
+    foxglove_topics |= {re.match(r'(/[^.]+)', p['value']).group(1)
+                        for p in layout['configById']['Plot!joints']['paths']}
+    for topics in (rviz_topics, foxglove_topics):
+        assert topics and topics <= set(RECORDED), topics - set(RECORDED)
+    assert '/robot_description' in rviz_topics & foxglove_topics

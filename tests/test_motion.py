@@ -8,7 +8,7 @@ import pybullet as p
 import pybullet_data
 import pytest
 
-from hdp_motion import planning, timing
+from hdp_motion import panda, planning, timing
 from hdp_motion.panda import HOME, LOWER, UPPER, VELOCITY_LIMITS
 
 DOWN = np.array([1.0, 0.0, 0.0, 0.0])        # gripper pointing at the floor
@@ -180,3 +180,24 @@ def test_quat_angle_is_sign_invariant_and_agrees_with_torchs_pose_error():
     assert np.allclose(angles, pose_error(*poses)[1].numpy(), atol=1e-7)
     unit_a, unit_b = (q / np.linalg.norm(q, axis=-1, keepdims=True) for q in (qa, qb))
     assert np.allclose(angles, [rotation_angle(a, b) for a, b in zip(unit_a, unit_b)], atol=1e-9)
+
+
+def test_each_robot_types_limits_are_franka_descriptions():
+    """robots/fer and robots/fr3 joint_limits.yaml of franka_description (jazzy)."""
+    fr3 = panda.limits_for('fr3')
+    assert fr3.lower[0] == -2.7437 and fr3.upper[0] == 2.7437 and fr3.lower[5] == 0.5445 and fr3.upper[5] == 4.5169
+    assert fr3.upper[3] == -0.1518 and list(fr3.velocity) == [2.62] * 4 + [5.26, 4.18, 5.26]
+    assert panda.limits_for('panda') == panda.JointLimits(panda.LOWER, panda.UPPER, panda.VELOCITY_LIMITS)
+    assert all(np.all(lim.lower < lim.upper) for lim in panda.ROBOT_LIMITS.values())
+    assert panda.within_limits(panda.HOME, limits=fr3)
+    with pytest.raises(ValueError, match='unknown robot type .ur5.; robot types: panda, fr3'):
+        panda.limits_for('ur5')
+
+
+def test_timing_follows_the_robots_velocity_limits():
+    path = np.linspace(panda.HOME, panda.HOME + np.array([0, 0, 0, 0, 2.0, 0, 0]), 50)   # joint 5 alone
+    panda_times = timing.time_parameterize(path, velocity_scale=1.0)
+    fr3_times = timing.time_parameterize(path, velocity_scale=1.0, velocity_limits=panda.limits_for('fr3').velocity)
+    assert fr3_times[-1] < panda_times[-1]                       # joint 5: 5.26 rad/s on the FR3, 2.61 on the Panda
+    speed = np.max(np.abs(np.diff(path, axis=0)) / np.diff(fr3_times)[:, None], axis=0)
+    assert speed[4] <= 5.26 + 1e-6 and speed[4] > 2.61

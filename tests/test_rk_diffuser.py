@@ -461,3 +461,19 @@ def test_fig4_plot_writes_a_png(tmp_path):
     segment = {'poses': line, 'joint_fk': line + 0.01, 'refined_fk': line, 'planner_fk': line[::4]}
     plot(segment, 'test', tmp_path / 'fig.png')
     assert (tmp_path / 'fig.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+
+
+def test_a_robot_types_limits_refuse_refine_and_time_what_goes_to_it():
+    """The FR3's joint 6 cannot go below 0.5445 rad (the Panda's to -0.0175): a path there is
+    fine for a Panda and refused for an FR3, naming the joint; refinement keeps inside the FR3's."""
+    from hdp_controller.trajectory import TrajectoryError, joint_trajectory
+    fr3 = panda.limits_for('fr3')
+    low_wrist = np.concatenate([panda.HOME[:5], [0.2], panda.HOME[6:]])
+    path = np.linspace(panda.HOME, low_wrist, 10)[1:]
+    joint_trajectory(panda.HOME, path)                                    # a Panda may
+    with pytest.raises(TrajectoryError, match=r'joint 6: \[0.5445, 4.5169\]'):
+        joint_trajectory(panda.HOME, path, limits=fr3)
+    joints = torch.tensor(np.linspace(panda.HOME, low_wrist, HORIZON)[None], dtype=torch.float32)
+    refined = refine(joints, kinematics.fk_pose(joints), steps=10, limits=fr3)[0, 1:].numpy()
+    assert np.all(refined >= fr3.lower - 1e-6) and np.all(refined <= fr3.upper + 1e-6)
+    joint_trajectory(panda.HOME, refined, limits=fr3)                     # accepted as refined

@@ -119,7 +119,7 @@ def test_colcon_build_installs_ros_layout(tmp_path):
     bringup_share = install / 'hdp_bringup' / 'share' / 'hdp_bringup'
     for launch in ('hdp_graph.launch.py', 'hdp_real_panda.launch.py'):
         assert (bringup_share / 'launch' / launch).is_file(), launch
-    for params in ('hdp_graph.yaml', 'hdp_real_panda.yaml'):
+    for params in ('hdp_graph.yaml', 'hdp_real_panda.yaml', 'hdp.rviz', 'hdp_foxglove_layout.json'):
         assert (bringup_share / 'config' / params).is_file(), params
 
     # The ROS interface definitions ship inside hdp_msgs_py (package_data);

@@ -73,7 +73,8 @@ def _nodes(context):
         Node(package='hdp_planner', executable='planner_node', name='planner_node',
              parameters=[params, prefix], output='screen'),
         Node(package='hdp_controller', executable='controller_node', name='controller_node',
-             parameters=[params, prefix], output='screen',
+             parameters=[params, prefix, {'robot_type': 'fr3' if arg['arm_id'] == 'fr3' else 'panda'}],
+             output='screen',
              remappings=[('/panda_arm_controller/joint_trajectory',
                           '/joint_trajectory_controller/joint_trajectory')]),
     ]

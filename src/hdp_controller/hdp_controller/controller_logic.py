@@ -163,16 +163,18 @@ def segment_request(state: ArmState, gripper_open: bool, goal_pose, goal_open: b
 
 
 def plan_segment(policy, request: SegmentRequest, joint_names, velocity_scale: float,
-                 reach_tolerance: tuple[float, float] | None = None):
+                 reach_tolerance: tuple[float, float] | None = None,
+                 limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']):
     """The policy's joints as a JointTrajectory from request.q, or SegmentRefused.
 
     reach_tolerance: (m, deg) for check_reach; None leaves the plan's end unchecked.
+    limits: the robot's joint limits, which the trajectory is checked and timed against.
     """
     plan = policy.plan(request)
     if not plan.ok:
         raise SegmentRefused(f'{policy.name} found no trajectory ({plan.failure or "no plan"})')
     try:
-        msg = joint_trajectory(request.q, plan.joints, joint_names, velocity_scale)
+        msg = joint_trajectory(request.q, plan.joints, joint_names, velocity_scale, limits=limits)
     except TrajectoryError as err:
         raise SegmentRefused(f'{policy.name} trajectory refused: {err}') from None
     if reach_tolerance is not None:
@@ -288,8 +290,9 @@ class SegmentController:
 
     def __init__(self, policy, needs_points: bool, velocity_scale: float, segment_timeout_s: float,
                  arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS,
-                 reach_tolerance: tuple[float, float] = (REACH_TOLERANCE_M, REACH_TOLERANCE_DEG)):
-        self.policy, self.needs_points = policy, needs_points
+                 reach_tolerance: tuple[float, float] = (REACH_TOLERANCE_M, REACH_TOLERANCE_DEG),
+                 limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']):
+        self.policy, self.needs_points, self.limits = policy, needs_points, limits
         self.reach_tolerance = reach_tolerance
         self.velocity_scale, self.segment_timeout_s = velocity_scale, segment_timeout_s
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
@@ -388,7 +391,7 @@ class SegmentController:
             request = segment_request(self.state, is_open, pending.goal, is_open if goal_open is None else goal_open,
                                       points)
             trajectory, plan = plan_segment(self.policy, request, self.arm_joints, self.velocity_scale,
-                                            self.reach_tolerance)
+                                            self.reach_tolerance, self.limits)
         except SegmentRefused as err:
             return out + self._refuse(stamp, str(err))
         duration = conversions.duration_to_seconds(trajectory.points[-1].time_from_start)

@@ -35,7 +35,8 @@ class ControllerNode(ros.Node):
         'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
         'segment_timeout_s': (10.0, 's after the trajectory ends before the segment has failed'),
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before a segment fails'),
-        'velocity_scale': (VELOCITY_SCALE, "fraction of the Panda's velocity limits, (0, 1]"),
+        'robot_type': ('panda', 'panda | fr3: the joint limits trajectories are refined, checked and timed against'),
+        'velocity_scale': (VELOCITY_SCALE, "fraction of the robot's velocity limits, (0, 1]"),
         'reach_tolerance_m': (REACH_TOLERANCE_M, 'a plan ending farther from its NBP is refused (m)'),
         'reach_tolerance_deg': (REACH_TOLERANCE_DEG, 'a plan ending turned farther from its NBP is refused (deg)'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
@@ -52,7 +53,11 @@ class ControllerNode(ros.Node):
             if not p[name] > 0.0:
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         try:
-            policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'])
+            limits = panda.limits_for(p['robot_type'])
+        except ValueError as err:
+            raise ros.StartupError(f"parameter 'robot_type': {err}") from None
+        try:
+            policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'], limits=limits)
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
             raise ros.StartupError(f"cannot load the {p['method']} policy: {err}") from None
         prefix = p['joint_prefix']
@@ -60,7 +65,7 @@ class ControllerNode(ros.Node):
             policy, needs_points=p['method'] != 'planner', velocity_scale=p['velocity_scale'],
             segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
             finger_joints=tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS),
-            reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']))
+            reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits)
 
         self.status = ros.Status(self)
         self._outputs = {

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hdp_motion import panda
 from hdp_msgs_py import checkpoints
 
 from . import checkpoint
@@ -80,15 +81,16 @@ class PoseSampler(_Sampling):
 class RKDPolicy(_Sampling):
     name = 'rkd'
 
-    def __init__(self, *args, refine_steps: int = REFINE_STEPS, **kwargs):
+    def __init__(self, *args, refine_steps: int = REFINE_STEPS, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'],
+                 **kwargs):
         super().__init__(*args, **kwargs)
-        self.refine_steps = refine_steps
+        self.refine_steps, self.limits = refine_steps, limits      # the robot's: refinement stays inside
 
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
         started = time.perf_counter()
         out = self._sample(request, ('pose', 'joint'))
         sampled = time.perf_counter()
-        joints = refine(out['joints'], out['poses'], steps=self.refine_steps)
+        joints = refine(out['joints'], out['poses'], steps=self.refine_steps, limits=self.limits)
         translation, rotation = goal_error(joints, out['poses'][:, -1])
         return PlanResult(joints[0].numpy(), poses=out['poses'][0].numpy(), extras={
             'unrefined_joints': out['joints'][0].numpy(), 'sample_s': sampled - started,
@@ -107,8 +109,10 @@ class JointDiffusionPolicy(_Sampling):
 
 
 def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps: int | None = None,
-                seed: int = 0, guidance: float | None = None, refine_steps: int = REFINE_STEPS):
+                seed: int = 0, guidance: float | None = None, refine_steps: int = REFINE_STEPS,
+                limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']):
     """A LowLevelPolicy by name; learned ones from ``checkpoint_path`` (default: the released one).
+    ``limits``: the robot's joint limits, which rkd's refinement keeps to.
 
     sampler 'ddpm' runs all 100 steps with the checkpoint's guidance; 'ddim' defaults to
     FAST_STEPS with FAST_GUIDANCE. ``steps`` and ``guidance`` override those defaults.
@@ -126,7 +130,7 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
     common = dict(sampler=sampler, steps=steps or (FAST_STEPS if fast else None), seed=seed,
                   guidance=guidance, training_seeds=payload.get('training_seeds'))
     if method == 'rkd':
-        return RKDPolicy(model, refine_steps=refine_steps, **common)
+        return RKDPolicy(model, refine_steps=refine_steps, limits=limits, **common)
     if method == 'joint':
         return JointDiffusionPolicy(model, **common)
     return PoseIKPolicy(PoseSampler(model, **common), training_seeds=common['training_seeds'])

@@ -57,16 +57,18 @@ def _half_turn(dtype: torch.dtype) -> torch.Tensor:
 
 
 def refine(joints: torch.Tensor, poses: torch.Tensor, steps: int = 50, max_step: float = 0.1,
-           damping: float = 1e-2, smoothing: int = SMOOTHING_PASSES) -> torch.Tensor:
+           damping: float = 1e-2, smoothing: int = SMOOTHING_PASSES,
+           limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']) -> torch.Tensor:
     """joints (B, T, 7) rad, poses (B, T, 7) xyz + quat xyzw -> refined joints (B, T, 7).
 
     Both are first smoothed by ``smoothing`` filter passes; then ``steps``
     Gauss-Newton steps, each at most ``max_step`` rad per joint: a far-off
     waypoint would otherwise jump to another arm configuration that the
-    executed motion then sweeps through.
+    executed motion then sweeps through. Every waypoint after the start stays inside ``limits``
+    (the robot's, panda.limits_for).
     """
-    lower = torch.tensor(panda.LOWER, dtype=joints.dtype) + _LIMIT_MARGIN
-    upper = torch.tensor(panda.UPPER, dtype=joints.dtype) - _LIMIT_MARGIN
+    lower = torch.tensor(limits.lower, dtype=joints.dtype) + _LIMIT_MARGIN
+    upper = torch.tensor(limits.upper, dtype=joints.dtype) - _LIMIT_MARGIN
     joints = smooth(continuous_start(joints.detach()), smoothing)
     poses = smooth_poses(poses.detach(), smoothing)
     start, sampled = joints[:, :1], joints[:, 1:].clamp(lower, upper)

@@ -24,26 +24,30 @@ class TrajectoryError(ValueError):
     pass
 
 
-def timed_waypoints(q_current, joints, velocity_scale: float = VELOCITY_SCALE) -> tuple[np.ndarray, np.ndarray]:
-    """(positions (K + 1, 7) from q_current, times_from_start (K + 1,) s).
+def timed_waypoints(q_current, joints, velocity_scale: float = VELOCITY_SCALE,
+                    limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']) -> tuple[np.ndarray, np.ndarray]:
+    """(positions (K + 1, 7) from q_current, times_from_start (K + 1,) s), within ``limits``
+    (the robot's: panda.limits_for).
 
     Raises TrajectoryError for non-finite or out-of-limit waypoints.
     """
     path = np.vstack([np.asarray(q_current, dtype=float), np.asarray(joints, dtype=float)])
     if path.ndim != 2 or path.shape[1] != 7 or not np.all(np.isfinite(path)):
         raise TrajectoryError(f'joint waypoints must be finite (K, 7), got shape {path.shape}')
-    if not panda.within_limits(path[1:], tol=_LIMIT_TOLERANCE):
-        worst = np.max(np.maximum(panda.LOWER - path[1:], path[1:] - panda.UPPER))
-        raise TrajectoryError(f'a waypoint is {worst:.4f} rad outside the joint position limits')
+    if not panda.within_limits(path[1:], tol=_LIMIT_TOLERANCE, limits=limits):
+        excess = np.maximum(limits.lower - path[1:], path[1:] - limits.upper)
+        joint = int(np.argmax(excess.max(axis=0)))
+        raise TrajectoryError(f'a waypoint is {excess.max():.4f} rad outside the joint position limits '
+                              f'(joint {joint + 1}: [{limits.lower[joint]:.4f}, {limits.upper[joint]:.4f}])')
     # Onto the limits exactly: an arm pressed against a limit reads a hair beyond it, and a
     # controller refuses a point 0 there (the soak saw panda_joint5 at 2.8973 + 1e-7 refused).
-    path = np.clip(path, panda.LOWER, panda.UPPER)
-    return path, time_parameterize(path, velocity_scale=velocity_scale)
+    path = np.clip(path, limits.lower, limits.upper)
+    return path, time_parameterize(path, velocity_scale=velocity_scale, velocity_limits=limits.velocity)
 
 
 def joint_trajectory(q_current, joints, joint_names=panda.ARM_JOINTS, velocity_scale: float = VELOCITY_SCALE,
-                     stamp=None):
+                     stamp=None, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']):
     """trajectory_msgs/JointTrajectory through ``joints`` (K, 7) from ``q_current`` (7,)."""
-    positions, times = timed_waypoints(q_current, joints, velocity_scale)
-    velocities = path_velocities(positions, times, velocity_scale)
+    positions, times = timed_waypoints(q_current, joints, velocity_scale, limits)
+    velocities = path_velocities(positions, times, velocity_scale, limits.velocity)
     return build_joint_trajectory(joint_names, positions, times, velocities, stamp=stamp)

@@ -4,6 +4,8 @@ Limits are the real robot's (Franka datasheet), which are slightly tighter
 than pybullet_data's URDF; everything clamps to these.
 """
 
+from typing import NamedTuple
+
 import numpy as np
 
 # The arm's link 0 in the world frame, facing +x: it stands on the table top.
@@ -29,11 +31,37 @@ FINGER_MAX = 0.04           # m per finger: gripper opening = 2 x finger positio
 GRIPPER_OPEN_WIDTH = 0.08   # m
 
 
+class JointLimits(NamedTuple):
+    """Position (rad) and velocity (rad/s) limits of the seven arm joints, each (7,)."""
+    lower: np.ndarray
+    upper: np.ndarray
+    velocity: np.ndarray
+
+
+# Per robot type, from franka_description (robots/fer and robots/fr3/joint_limits.yaml): the
+# Panda (FER) and the FR3 share kinematics but not limits (the FR3's joint 6 cannot go below
+# 0.5445 rad, its joint 1 stops at +-2.7437, its joints are faster). Models and the simulator
+# are the Panda's; what goes to a robot is checked, refined and timed against its own limits.
+ROBOT_LIMITS = {
+    'panda': JointLimits(LOWER, UPPER, VELOCITY_LIMITS),
+    'fr3': JointLimits(np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159]),
+                       np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159]),
+                       np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])),
+}
+
+
+def limits_for(robot_type: str) -> JointLimits:
+    """The joint limits of 'panda' or 'fr3'; ValueError naming the known types otherwise."""
+    if robot_type not in ROBOT_LIMITS:
+        raise ValueError(f'unknown robot type {robot_type!r}; robot types: {", ".join(ROBOT_LIMITS)}')
+    return ROBOT_LIMITS[robot_type]
+
+
 def joint_names(prefix: str = 'panda') -> tuple[str, ...]:
     """Arm joint names for a robot prefix ('panda', or 'fr3' for the FR3)."""
     return tuple(name.replace('panda', prefix, 1) for name in ARM_JOINTS)
 
 
-def within_limits(q, tol: float = 1e-6) -> bool:
+def within_limits(q, tol: float = 1e-6, limits: JointLimits = ROBOT_LIMITS['panda']) -> bool:
     q = np.asarray(q, dtype=float)
-    return bool(np.all(q >= LOWER - tol) and np.all(q <= UPPER + tol))
+    return bool(np.all(q >= limits.lower - tol) and np.all(q <= limits.upper + tol))

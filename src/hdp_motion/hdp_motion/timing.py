@@ -19,11 +19,12 @@ _MIN_DT = 1e-3            # s: the time given to a zero-length segment
 _TURN_MARGIN = 4.0
 
 
-def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATION):
+def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATION,
+                      velocity_limits=VELOCITY_LIMITS):
     """time_from_start (N,) for a joint path (N, 7): 0 first, strictly increasing.
 
     Along the path the speed follows a trapezoidal profile that starts and
-    ends at rest, with no joint exceeding VELOCITY_LIMITS * velocity_scale
+    ends at rest, with no joint exceeding velocity_limits * velocity_scale
     between consecutive waypoints nor `acceleration` (rad/s^2, scalar or (7,))
     along a segment. Where the path turns, the speed is also capped so that
     no joint's acceleration round the turn (speed^2 x curvature) exceeds
@@ -45,7 +46,7 @@ def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATIO
     # limit, and the change of speed^2 a segment allows (none when empty).
     v_cap = np.full(len(dq), np.inf)
     a_cap = np.full(len(dq), np.inf)
-    v_cap[moving] = length[moving] / np.max(dq[moving] / (VELOCITY_LIMITS * velocity_scale), axis=1)
+    v_cap[moving] = length[moving] / np.max(dq[moving] / (np.asarray(velocity_limits) * velocity_scale), axis=1)
     a_cap[moving] = length[moving] / np.max(dq[moving] / acceleration, axis=1)
     reach = np.zeros(len(dq))
     reach[moving] = 2 * a_cap[moving] * length[moving]
@@ -73,12 +74,12 @@ def time_parameterize(path, velocity_scale=1.0, acceleration=DEFAULT_ACCELERATIO
     return np.concatenate([[0.0], np.cumsum(dt)])
 
 
-def path_velocities(path, times, velocity_scale=1.0):
+def path_velocities(path, times, velocity_scale=1.0, velocity_limits=VELOCITY_LIMITS):
     """Joint velocities (N, 7) at the waypoints of a timed path (N, 7), times (N,):
-    central differences, zero at both ends, clipped to VELOCITY_LIMITS * velocity_scale."""
+    central differences, zero at both ends, clipped to velocity_limits * velocity_scale."""
     velocities = np.gradient(np.asarray(path, dtype=float), times, axis=0)
     velocities[[0, -1]] = 0.0
-    limit = VELOCITY_LIMITS * velocity_scale
+    limit = np.asarray(velocity_limits) * velocity_scale
     return np.clip(velocities, -limit, limit)
 
 

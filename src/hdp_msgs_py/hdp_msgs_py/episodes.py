@@ -87,16 +87,13 @@ def _typestore():
     return get_typestore(Stores.ROS2_JAZZY)
 
 
-def _offered_qos(topic: str) -> Qos:
-    """The QoS our nodes publish ``topic`` with, so ``ros2 bag play`` offers the same."""
-    if topic == topics.TF_STATIC:
-        policies = topics.QOS_POLICIES['TF_STATIC_QOS']
-    elif topic == topics.STATUS:
-        policies = topics.QOS_POLICIES['STATUS_QOS']
-    elif topic.startswith('/camera/'):
-        policies = topics.QOS_POLICIES['SENSOR_QOS']
-    else:
-        policies = topics.QOS_POLICIES['COMMAND_QOS']
+def offered_qos(topic: str) -> Qos:
+    """The QoS our nodes publish ``topic`` with, so ``ros2 bag play`` offers the same (latched
+    topics latched)."""
+    named = {topics.TF_STATIC: 'TF_STATIC_QOS', topics.ROBOT_DESCRIPTION: 'LATCHED_QOS', topics.TF: 'TF_QOS',
+             topics.STATUS: 'STATUS_QOS', topics.SIM_EPISODE: 'LATCHED_QOS'}
+    default = 'SENSOR_QOS' if topic.startswith('/camera/') or topic == topics.PLANNER_CLOUD else 'COMMAND_QOS'
+    policies = topics.QOS_POLICIES[named.get(topic, default)]
     return Qos(QosHistory.KEEP_LAST, policies.depth, QosReliability[policies.reliability],
                QosDurability[policies.durability], _INFINITE, _INFINITE, QosLiveliness.AUTOMATIC, _INFINITE,
                False)
@@ -153,7 +150,7 @@ class EpisodeWriter:
         connection = self._connections.get(topic)
         if connection is None:
             connection = self._writer.add_connection(topic, type_name, typestore=_typestore(),
-                                                     offered_qos_profiles=[_offered_qos(topic)])
+                                                     offered_qos_profiles=[offered_qos(topic)])
             self._connections[topic] = connection
         elif connection.msgtype != type_name:
             raise TypeError(f'{topic} carries {connection.msgtype}, got {type_name}')

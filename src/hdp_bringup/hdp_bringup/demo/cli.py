@@ -21,6 +21,7 @@ from .cpu import cpu_seconds, read_stats
 from .episode_log import segment_line
 from .figures import figures, format_figures
 from .media import write_episode_files
+from .recording import BagRecorder
 from .watcher import DemoNode, GraphDown, Interrupted, Session, run_episode, wait_for_graph, watched_graph
 
 METHODS = ('rkd', 'planner', 'pose_ik', 'joint')      # controller_node's `method` parameter
@@ -69,6 +70,9 @@ def configure(parser) -> None:
                         help=f'node parameters (default: {default_params_file()})')
     parser.add_argument('--json', action='store_true',
                         help='print summary.json on stdout (progress goes to stderr)')
+    parser.add_argument('--record', action='store_true',
+                        help='also record the run as an MCAP bag in OUT/bag (robot, TF, cameras, NBPs, '
+                             'trajectories) for Foxglove or ros2 bag play')
     parser.epilog = ('ROS_DOMAIN_ID: the environment\'s if set, else a free-looking one is picked at random '
                      f'from {SAFE_DOMAINS.start}..{SAFE_DOMAINS.stop - 1} and printed.')
     parser.set_defaults(func=run)
@@ -85,6 +89,8 @@ def argument_problem(args, tasks) -> str | None:
     params = args.params_file or default_params_file()
     if not params.is_file():
         return f'no parameter file {params}'
+    if getattr(args, 'record', False) and (args.out / 'bag').exists():
+        return f'{args.out / "bag"} exists: a recording is never overwritten; move it or choose another --out'
     return None
 
 
@@ -141,6 +147,17 @@ def run(args) -> int:
 
 def _run(session: Session, args, records, logs_by_episode, started, say) -> int:
     """Wait for the graph, run the episodes; the exit code (2: the planner refused the instruction)."""
+    node = session.node
+    recorder = BagRecorder(node, args.out / 'bag') if args.record else None     # before latched topics come
+    try:
+        return _episodes(session, args, records, logs_by_episode, started, say)
+    finally:
+        if recorder is not None:
+            recorder.close()
+            say(f"recorded {sum(recorder.counts.values())} messages in {recorder.path} (Foxglove opens it)")
+
+
+def _episodes(session: Session, args, records, logs_by_episode, started, say) -> int:
     node = session.node
     wait_for_graph(session, say, started)
     ticks = os.sysconf('SC_CLK_TCK')
