@@ -5,9 +5,9 @@ import os
 import signal
 import subprocess
 import sys
-import types
 from pathlib import Path
 
+import launch_stubs
 import pytest
 import yaml
 
@@ -26,40 +26,9 @@ def test_launch_arguments_set_the_parameters_of_the_nodes_they_concern():
             launch_overrides(*bad)
 
 
-class _Recorded:
-    """Stands in for a launch action: keeps what it was made with."""
-    def __init__(self, *args, **kwargs):
-        self.args, self.kwargs = args, kwargs
-
-
-def _fake_launch_modules(monkeypatch, share: Path, arguments: dict) -> None:
-    """The launch and launch_ros API hdp_graph.launch.py uses (not on the package registry)."""
-    class LaunchConfiguration:
-        def __init__(self, name):
-            self.name = name
-
-        def perform(self, context):
-            return context[self.name]
-    modules = {
-        'launch': types.SimpleNamespace(LaunchDescription=lambda actions: list(actions)),
-        'launch.actions': types.SimpleNamespace(DeclareLaunchArgument=_Recorded, OpaqueFunction=_Recorded),
-        'launch.substitutions': types.SimpleNamespace(LaunchConfiguration=LaunchConfiguration),
-        'launch_ros.actions': types.SimpleNamespace(Node=_Recorded),
-        'ament_index_python.packages': types.SimpleNamespace(get_package_share_directory=lambda p: str(share)),
-    }
-    for name, module in modules.items():
-        monkeypatch.setitem(sys.modules, name, module)
-
-
 def _launch_file_nodes(monkeypatch, tmp_path, given: dict) -> tuple[list, dict]:
-    _fake_launch_modules(monkeypatch, tmp_path, given)
-    namespace = {}
-    exec(compile(LAUNCH_FILE.read_text(), str(LAUNCH_FILE), 'exec'), namespace)
-    actions = namespace['generate_launch_description']()
-    declared = {a.args[0]: a.kwargs['default_value'] for a in actions if 'default_value' in a.kwargs}
-    context = {**declared, **given}
-    (nodes_function,) = [a for a in actions if 'function' in a.kwargs]
-    return nodes_function.kwargs['function'](context), declared
+    launch_stubs.install(monkeypatch, {'hdp_bringup': tmp_path})
+    return launch_stubs.run(LAUNCH_FILE, given)
 
 
 def test_the_launch_file_declares_its_arguments_and_passes_them_on(monkeypatch, tmp_path):
