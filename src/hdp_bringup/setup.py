@@ -25,6 +25,7 @@ setup(
         'pyyaml',
         'matplotlib',
         'pillow',
+        'rosbags',               # hdp demo --record
         'opencv-python-headless',
         'torch',
     ],
