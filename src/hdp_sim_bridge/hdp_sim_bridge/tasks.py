@@ -396,7 +396,15 @@ class TakeLidOffSaucepan(Task):
 class _GraspedHinge(Task):
     """Grasp a handle on a hinged part and carry it round the hinge (the grasp is rigid)."""
     body_name = joint_name = ''
+    make_urdf = staticmethod(lambda: '')
     swing = 0.0           # how far the expert carries it (rad)
+    open_above = 0.0      # the hinge angle past which it counts as open (RLBench's)
+
+    def build(self, world, rng):
+        self.load(world, self.body_name, self.make_urdf())
+
+    def success(self, world):
+        return self.joint_position(world, self.body_name, self.joint_name) > self.open_above
 
     def handle(self, world):
         """(grasp point, approach direction, closing direction) in the world."""
@@ -420,15 +428,9 @@ class OpenGrill(_GraspedHinge):
     touched_roles = ('grill',)
     name = 'open_grill'
     phrasings = instructions.TASKS[name].phrasings
-    body_name, joint_name = 'grill', 'lid'
-    swing = math.radians(65)
+    body_name, joint_name, make_urdf = 'grill', 'lid', staticmethod(objects.grill)
+    swing, open_above = math.radians(65), math.radians(50)
     distance = (0.62, 0.70)
-
-    def build(self, world, rng):
-        self.load(world, 'grill', objects.grill())
-
-    def success(self, world):
-        return self.joint_position(world, 'grill', 'lid') > math.radians(50)
 
     def handle(self, world):
         _, x_axis, y_axis = self.frame()
@@ -445,16 +447,10 @@ class OpenMicrowave(_GraspedHinge):
     touched_roles = ('microwave',)
     name = 'open_microwave'
     phrasings = instructions.TASKS[name].phrasings
-    body_name, joint_name = 'microwave', 'door'
-    swing = math.radians(95)
+    body_name, joint_name, make_urdf = 'microwave', 'door', staticmethod(objects.microwave)
+    swing, open_above = math.radians(95), math.radians(80)
     distance = (0.74, 0.82)
     yaw_range = math.pi / 8
-
-    def build(self, world, rng):
-        self.load(world, 'microwave', objects.microwave())
-
-    def success(self, world):
-        return self.joint_position(world, 'microwave', 'door') > math.radians(80)
 
     def handle(self, world):
         _, x_axis, _ = self.frame()
