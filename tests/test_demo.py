@@ -295,3 +295,17 @@ def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     missing = set(RECORDED) - seen - {'/hdp/planner/cloud'}        # the cloud only with publish_cloud
     assert not missing, missing
     assert len(joint1) > 100 and max(joint1) - min(joint1) > 1e-3     # the arm turned
+
+    # A one-episode recording is a demonstration as `ros2 bag record --custom-data` writes one
+    # on a robot: it reads as an episode and the agent trains on it.
+    from hdp_msgs_py.episodes import list_episodes, read_episode
+    recorded = read_episode(out / 'bag')
+    assert recorded.metadata == {'task': 'reach_target', 'seed': 1000, 'variation': episode['variation'],
+                                 'instruction': episode['instruction'], 'success': True}
+    assert recorded.instruction == episode['instruction'] and len(recorded.keyframes()) >= 2
+    assert list_episodes(out) == [out / 'bag']
+    train = subprocess.run(_hdp('train', 'high-level', '--data', str(out), '--out', str(tmp_path / 'agent.pt'),
+                                '--steps', '2', '--batch', '2', '--cache', str(tmp_path / 'cache')),
+                           env=_env(ros_domain), capture_output=True, text=True, timeout=300)
+    assert train.returncode == 0, train.stdout[-2000:] + train.stderr[-2000:]
+    assert (tmp_path / 'agent.pt').is_file()

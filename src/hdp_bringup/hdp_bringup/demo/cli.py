@@ -153,8 +153,18 @@ def _run(session: Session, args, records, logs_by_episode, started, say) -> int:
         return _episodes(session, args, records, logs_by_episode, started, say)
     finally:
         if recorder is not None:
-            recorder.close()
+            recorder.close(episode_metadata(records))
             say(f"recorded {sum(recorder.counts.values())} messages in {recorder.path} (Foxglove opens it)")
+
+
+def episode_metadata(records: list) -> dict:
+    """A one-episode recording's hdp.* metadata, as `ros2 bag record --custom-data` would carry it,
+    so that it trains like a recorded demonstration; none for several episodes (not one episode)."""
+    if len(records) != 1:
+        return {'hdp.episodes': len(records)}
+    record = records[0]
+    return {'hdp.task': record['task'], 'hdp.seed': record['seed'], 'hdp.variation': record['variation'],
+            'hdp.instruction': record['instruction'], 'hdp.success': str(bool(record['success'])).lower()}
 
 
 def _episodes(session: Session, args, records, logs_by_episode, started, say) -> int:

@@ -1,6 +1,7 @@
 """`hdp demo --record`: the run as an MCAP bag that Foxglove opens, or `ros2 bag play` replays
 for RViz: the robot (description and TF), both cameras, what the planner chose and what the
-controller sent.
+controller sent. A one-episode recording is also a training episode, written the way
+`ros2 bag record` writes a real demonstration (the hdp_bringup README's recipe).
 
 Messages are written as they come off the wire (rclpy's raw subscriptions: the CDR bytes, no
 decoding), stamped with the wall clock on arrival as `ros2 bag record` stamps them.
@@ -27,7 +28,8 @@ RECORDED = {
     topics.TF: (TFMessage, topics.TF_QOS),
     topics.JOINT_STATES: (JointState, topics.COMMAND_QOS),
     **{topic: (kind, topics.SENSOR_QOS) for camera in topics.CAMERAS
-       for topic, kind in ((topics.color_image(camera), Image), (topics.camera_info(camera), CameraInfo))},
+       for topic, kind in ((topics.color_image(camera), Image), (topics.depth_image(camera), Image),
+                           (topics.camera_info(camera), CameraInfo))},
     topics.INSTRUCTION: (String, topics.COMMAND_QOS),
     topics.NEXT_BEST_POSE: (PoseStamped, topics.COMMAND_QOS),
     topics.NEXT_BEST_POSE_MARKER: (Marker, topics.COMMAND_QOS),
@@ -58,7 +60,11 @@ class BagRecorder:
             self._writer.write(connection, time.time_ns(), raw)
             self.counts[topic] += 1
 
-    def close(self) -> None:
+    def close(self, custom_data: dict | None = None) -> None:
+        """Finish the bag; ``custom_data`` goes in its metadata as plain strings, as
+        `ros2 bag record --custom-data key=value` writes them."""
         if self._writer is not None:
+            for key, value in (custom_data or {}).items():
+                self._writer.set_custom_data(key, str(value))
             self._writer.close()
             self._writer = None
