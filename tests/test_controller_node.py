@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+
 import numpy as np
 import pytest
 import rclpy
@@ -19,7 +20,8 @@ import torch
 
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
-from hdp_msgs_py.msg import Header, JointState, Point, Pose, PoseStamped, Quaternion, TFMessage, Time
+from hdp_msgs_py.msg import (Header, JointState, JointTrajectory, Point, Pose, PoseStamped, Quaternion, TFMessage,
+                             Time)
 
 torch.set_num_threads(1)
 
@@ -398,14 +400,18 @@ def test_controller_builds_front_camera_points_for_learned_methods():
 
 # --- controller_node as a process next to sim_bridge_node -----------------------------------------
 
-def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain):
+@pytest.mark.parametrize('interface', ['topic', 'action'])
+def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, interface):
+    """Sim in the loop, on either interface: the JointTrajectory topic, or the
+    FollowJointTrajectory and GripperCommand actions the sim serves as JTC and franka_gripper do."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
     bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
                                '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=2.0',
                                '-p', 'task:=reach_target', '-p', 'seed:=3'],
                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
-                                   '-p', 'method:=planner', '-p', 'use_sim_time:=true'],
+                                   '-p', 'method:=planner', '-p', 'use_sim_time:=true',
+                                   '-p', f'arm_interface:={interface}', '-p', f'gripper_interface:={interface}'],
                                   env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         probe = subprocess.run([sys.executable, __file__, 'probe'], env=env, text=True, capture_output=True,
@@ -418,8 +424,12 @@ def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain):
     facts = json.loads(probe.stdout.strip().splitlines()[-1])
     assert facts['nan_result'].startswith('failed: invalid pose: position must be finite')
     assert any('refused segment 1.000' in s for s in facts['status'])
-    assert facts['trajectories'] == 1                                 # the NaN pose sent none
-    assert facts['within_limits'] and facts['first_point_error'] < 0.05
+    if interface == 'topic':
+        assert facts['trajectories'] == 1                             # the NaN pose sent none
+        assert facts['within_limits'] and facts['first_point_error'] < 0.05
+    else:
+        assert facts['trajectories'] == 0                             # all went as goals
+        assert any('sim_bridge_node: executing an arm goal' in s for s in facts['status'])
     assert facts['result'] == 'done' and facts['result_stamp'] == 2
     assert facts['arm_error'] < 0.02                                  # at the last waypoint
     assert facts['ee_error_m'] < 0.01                                 # so at the NBP
@@ -466,17 +476,17 @@ def probe() -> None:
     assert spin(45, lambda: len(seen['results']) >= 2), 'no result for the reachable pose'
     result = seen['results'][1]
     facts.update(result=result.frame_id, result_stamp=result.stamp.sec, trajectories=len(seen['trajectories']))
+    names = list(seen['joints'].name)
+    position = np.asarray(seen['joints'].position, dtype=float)
+    q = position[[names.index(n) for n in panda.ARM_JOINTS]]
+    end = kinematics.fk_pose(torch.as_tensor(q, dtype=torch.float64)).numpy()
+    facts.update(ee_error_m=float(np.linalg.norm(end[:3] - goal[:3])), arm_error=0.0,
+                 gripper_width=float(sum(position[names.index(n)] for n in panda.FINGER_JOINTS)))
     if seen['trajectories']:
         _, positions, _, _ = conversions.parse_joint_trajectory(seen['trajectories'][0])
-        names = list(seen['joints'].name)
-        position = np.asarray(seen['joints'].position, dtype=float)
-        q = position[[names.index(n) for n in panda.ARM_JOINTS]]
-        end = kinematics.fk_pose(torch.as_tensor(q, dtype=torch.float64)).numpy()
         facts.update(within_limits=panda.within_limits(positions),
                      first_point_error=float(np.max(np.abs(positions[0] - panda.HOME))),
-                     arm_error=float(np.max(np.abs(q - positions[-1]))),
-                     ee_error_m=float(np.linalg.norm(end[:3] - goal[:3])),
-                     gripper_width=float(sum(position[names.index(n)] for n in panda.FINGER_JOINTS)))
+                     arm_error=float(np.max(np.abs(q - positions[-1]))))
     spin(0.5, lambda: False)
     facts['status'] = seen['status']
     print(json.dumps(facts), flush=True)
@@ -496,3 +506,80 @@ def test_controller_node_refuses_an_unknown_robot_type_at_start_with_one_line(ro
     assert proc.returncode == 1
     assert "parameter 'robot_type': unknown robot type 'ur5'; robot types: panda, fr3" in proc.stderr
     assert 'Traceback' not in proc.stderr
+
+
+class _FakeGoalHandle:
+    def __init__(self, accepted=True):
+        from rclpy.task import Future
+        self.accepted, self.cancelled, self.result = accepted, 0, Future()
+
+    def cancel_goal_async(self):
+        self.cancelled += 1
+
+    def get_result_async(self):
+        return self.result
+
+
+class _FakeActionClient:
+    """Stands in for rclpy's ActionClient: records goals, the test answers them."""
+    made = []
+
+    def __init__(self, node, action_type, name):
+        self.name, self.goals, self.ready = name, [], True
+        _FakeActionClient.made.append(self)
+
+    def server_is_ready(self):
+        return self.ready
+
+    def send_goal_async(self, goal):
+        from rclpy.task import Future
+        future = Future()
+        self.goals.append((goal, future))
+        return future
+
+
+def test_the_arm_action_fails_a_segment_on_refusal_or_abort_and_cancels_one_that_ended(monkeypatch):
+    from types import SimpleNamespace
+
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    from hdp_controller import action_clients
+    from hdp_controller.controller_logic import GOAL_TOLERANCE
+    monkeypatch.setattr(action_clients, 'ActionClient', _FakeActionClient)
+    failed, sent = [], []
+    arm = action_clients.ArmAction(None, topics.ARM_ACTION, panda.ARM_JOINTS, sent.append,
+                                   lambda stamp, why: failed.append((stamp.sec, why)) or [('error', why)])
+    client = _FakeActionClient.made[-1]
+    assert client.name == topics.ARM_ACTION
+
+    arm.send(Time(sec=1), JointTrajectory())                       # refused by the controller
+    goal, future = client.goals[-1]
+    assert [t.position for t in goal.goal_tolerance] == [GOAL_TOLERANCE] * 7
+    assert [t.name for t in goal.goal_tolerance] == list(panda.ARM_JOINTS)
+    future.set_result(_FakeGoalHandle(accepted=False))
+    assert failed[-1] == (1, 'the arm controller rejected the trajectory')
+
+    arm.send(Time(sec=2), JointTrajectory())                       # accepted, then aborted
+    handle = _FakeGoalHandle()
+    client.goals[-1][1].set_result(handle)
+    result = FollowJointTrajectory.Result(error_code=-5, error_string='not within the goal tolerance in time')
+    handle.result.set_result(SimpleNamespace(status=GoalStatus.STATUS_ABORTED, result=result))
+    assert failed[-1] == (2, 'the arm controller aborted the trajectory: not within the goal tolerance in time '
+                             '(error_code -5)')
+
+    arm.send(Time(sec=3), JointTrajectory())                       # superseded: its goal is cancelled
+    handle = _FakeGoalHandle()
+    client.goals[-1][1].set_result(handle)
+    arm.segment_ended(Header(stamp=Time(sec=3), frame_id='failed: superseded by segment 4.000'))
+    assert handle.cancelled == 1
+    arm.send(Time(sec=4), JointTrajectory())                       # done: nothing to cancel
+    handle = _FakeGoalHandle()
+    client.goals[-1][1].set_result(handle)
+    arm.segment_ended(Header(stamp=Time(sec=4), frame_id=topics.SEGMENT_DONE))
+    arm.send(Time(sec=5), JointTrajectory())
+    assert handle.cancelled == 0 and len(failed) == 2
+
+    client.ready = False                                           # no controller at all
+    arm.send(Time(sec=6), JointTrajectory())
+    assert failed[-1] == (6, f'no FollowJointTrajectory server on {topics.ARM_ACTION}')

@@ -5,6 +5,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -135,3 +136,32 @@ def test_link_transforms_chain_to_the_simulators_hand_pose_and_the_urdf_loads():
     assert set(transforms) <= links | {'panda_link0'}
     meshes = [urlparse(m.get('filename')) for m in urdf.iter('mesh')]
     assert meshes and all(m.scheme == 'file' and Path(m.path).is_file() for m in meshes)
+
+
+def test_the_actions_have_ros_2s_names_and_types_on_the_wire(ros_domain):
+    """Seen from a process with no HDP code (plain Cyclone DDS): the sim serves
+    FollowJointTrajectory and GripperCommand under the names and DDS types ROS 2 gives them."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
+    node = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                             '-p', 'camera_rate_hz:=0.0'], env=env, text=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        time.sleep(3.0)
+        reader = subprocess.run([sys.executable, str(Path(__file__).with_name('endpoints_reader.py'))], env=env,
+                                text=True, capture_output=True, timeout=60)
+    finally:
+        node.send_signal(signal.SIGINT)
+        node.communicate(timeout=20)
+    assert reader.returncode == 0, reader.stderr
+    wire = json.loads(reader.stdout)
+    subscriptions = {tuple(p) for p in wire['subscriptions']}
+    publications = {tuple(p) for p in wire['publications']}
+    for action, kind in (('panda_arm_controller/follow_joint_trajectory', 'FollowJointTrajectory'),
+                         ('franka_gripper/gripper_action', 'GripperCommand')):
+        assert (f'rq/{action}/_action/send_goalRequest',
+                f'control_msgs::action::dds_::{kind}_SendGoal_Request_') in subscriptions, subscriptions
+        assert (f'rr/{action}/_action/get_resultReply',
+                f'control_msgs::action::dds_::{kind}_GetResult_Response_') in publications
+        assert (f'rt/{action}/_action/feedback',
+                f'control_msgs::action::dds_::{kind}_FeedbackMessage_') in publications
+        assert (f'rt/{action}/_action/status', 'action_msgs::msg::dds_::GoalStatusArray_') in publications

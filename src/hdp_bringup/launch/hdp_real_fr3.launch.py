@@ -24,8 +24,8 @@ What it starts:
 
 A Panda (FER) cannot run on Jazzy's franka_ros2: it builds against libfranka 0.20.5
 (dependency.repos), and a FER's firmware speaks only to libfranka < 0.10 (Franka's
-compatibility matrix). The gripper is not wired: franka_gripper serves actions (move, grasp,
-gripper_action), and controller_node still sends the gripper a JointTrajectory.
+compatibility matrix). controller_node commands both as actions (config/hdp_real_fr3.yaml):
+FollowJointTrajectory to hdp_arm_controller, GripperCommand to franka_gripper's gripper_action.
 """
 
 import os

@@ -404,6 +404,14 @@ class SegmentController:
             f'segment {stamp_label(stamp)}: {self.policy.name} to ({x:.3f}, {y:.3f}, {z:.3f}): '
             f'{len(trajectory.points)} points over {duration:.2f} s{gripper}'))]
 
+    def arm_failed(self, stamp, why: str) -> list[Out]:
+        """The arm controller refused or aborted segment ``stamp``'s trajectory (the action
+        interface): that segment fails with the controller's reason, if it is still running."""
+        if self.running is None or stamp_ns(self.running[0]) != stamp_ns(stamp):
+            return []
+        self.running = None
+        return self._refuse(stamp, why, 'segment {} failed')
+
     def robot_gone(self, why: str) -> list[Out]:
         """The robot stopped answering (Liveness.problem): the pending or running segment fails."""
         current = self.pending.nbp.header.stamp if self.pending is not None else (

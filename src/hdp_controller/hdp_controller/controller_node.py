@@ -19,6 +19,7 @@ from hdp_msgs_py import ros, topics
 from hdp_msgs_py.liveness import Liveness
 from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
 
+from .action_clients import ArmAction, GripperAction
 from .controller_logic import REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, SegmentController
 from .policy import METHODS, load_policy
 from .trajectory import VELOCITY_SCALE
@@ -26,6 +27,7 @@ from .trajectory import VELOCITY_SCALE
 _STEP_S = 0.05
 _WATCH_S = 0.5
 _CAMERA = 'front'              # RK-Diffuser sees the front camera only, as in training
+INTERFACES = ('topic', 'action')
 
 
 class ControllerNode(ros.Node):
@@ -40,6 +42,10 @@ class ControllerNode(ros.Node):
         'reach_tolerance_m': (REACH_TOLERANCE_M, 'a plan ending farther from its NBP is refused (m)'),
         'reach_tolerance_deg': (REACH_TOLERANCE_DEG, 'a plan ending turned farther from its NBP is refused (deg)'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
+        'arm_interface': ('topic', "topic: JointTrajectory to the controller's topic; action: FollowJointTrajectory"),
+        'arm_action': (topics.ARM_ACTION, "the FollowJointTrajectory action (a JTC's <controller>/follow_joint_trajectory)"),
+        'gripper_interface': ('topic', 'topic: JointTrajectory of the fingers; action: GripperCommand (franka_gripper)'),
+        'gripper_action': (topics.GRIPPER_ACTION, 'the GripperCommand action (franka_gripper serves gripper_action)'),
     }
 
     def __init__(self):
@@ -49,6 +55,9 @@ class ControllerNode(ros.Node):
             raise ros.StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
         if not 0.0 < p['velocity_scale'] <= 1.0:
             raise ros.StartupError(f"parameter 'velocity_scale' must be in (0, 1], got {p['velocity_scale']}")
+        for name in ('arm_interface', 'gripper_interface'):
+            if p[name] not in INTERFACES:
+                raise ros.StartupError(f"parameter {name!r} must be topic or action, got {p[name]!r}")
         for name in ('segment_timeout_s', 'state_timeout_s', 'reach_tolerance_m', 'reach_tolerance_deg'):
             if not p[name] > 0.0:
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
@@ -73,6 +82,12 @@ class ControllerNode(ros.Node):
             'gripper': self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS),
             'result': self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS),
         }
+        # As real robots take commands: joint_trajectory_controller's and franka_gripper's actions.
+        # (Parameters rather than remapping: rcl remaps action names only since 2024, rcl#1170.)
+        self.arm_action = (ArmAction(self, p['arm_action'], self.logic.arm_joints, self._send, self.logic.arm_failed)
+                           if p['arm_interface'] == 'action' else None)
+        self.gripper_action = (GripperAction(self, p['gripper_action']) if p['gripper_interface'] == 'action'
+                               else None)
         self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
         self.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
                                  lambda m: self._send(self.logic.on_gripper_goal(m)), topics.COMMAND_QOS)
@@ -114,7 +129,13 @@ class ControllerNode(ros.Node):
         for kind, msg in outputs:
             if kind in ('info', 'error'):
                 self.status.say(kind, msg)
+            elif kind == 'arm' and self.arm_action is not None:
+                self.arm_action.send(self.logic.running[0], msg)
+            elif kind == 'gripper' and self.gripper_action is not None:
+                self.gripper_action.send(msg)
             else:
+                if kind == 'result' and self.arm_action is not None:
+                    self.arm_action.segment_ended(msg)
                 self._outputs[kind].publish(msg)
 
 

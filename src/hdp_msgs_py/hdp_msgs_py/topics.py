@@ -15,6 +15,10 @@ PLANNER_CLOUD = '/hdp/planner/cloud'      # sensor_msgs/PointCloud2: what the ag
 JOINT_STATES = '/joint_states'
 ARM_TRAJECTORY = '/panda_arm_controller/joint_trajectory'
 GRIPPER_TRAJECTORY = '/panda_gripper_controller/joint_trajectory'
+# The same commands as actions, as real controllers take them: joint_trajectory_controller's
+# control_msgs/FollowJointTrajectory and franka_gripper's control_msgs/GripperCommand.
+ARM_ACTION = '/panda_arm_controller/follow_joint_trajectory'
+GRIPPER_ACTION = '/franka_gripper/gripper_action'
 TF_STATIC = '/tf_static'
 TF = '/tf'
 ROBOT_DESCRIPTION = '/robot_description'   # std_msgs/String URDF, latched (the sim's; robot_state_publisher's on a robot)

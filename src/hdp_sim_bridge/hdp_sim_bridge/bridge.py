@@ -103,6 +103,10 @@ class SimBridge:
     def sim_time(self) -> float:
         return self.world.sim_time
 
+    def check_arm(self, msg) -> None:
+        """ValueError if ``msg`` would be refused by command_arm; nothing changes either way."""
+        accept(msg, self.sim_time, self.world.joint_positions())
+
     def command_arm(self, msg) -> None:
         """Accept a JointTrajectory (replacing the running one) or raise ValueError; nothing moves on error."""
         self.trajectory = accept(msg, self.sim_time, self.world.joint_positions())
@@ -116,6 +120,25 @@ class SimBridge:
         self.world.step()
         if self.task is not None:
             self.task.on_step(self.world)
+
+    def arm_goal_state(self, active, goal_tolerance: np.ndarray, goal_time_tolerance: float) -> str:
+        """How a FollowJointTrajectory goal executing ``active`` stands, as joint_trajectory_controller
+        judges it: 'running' until its end time, then 'succeeded' once every joint is within
+        ``goal_tolerance`` (7,) rad of the last point, 'violated' if not by ``goal_time_tolerance``
+        s after the end, and 'preempted' when another trajectory replaced it."""
+        if self.trajectory is not active:
+            return 'preempted'
+        late = self.sim_time - active.end_time
+        if late < 0:
+            return 'running'
+        if np.all(np.abs(self.world.joint_positions() - active.positions[-1]) <= goal_tolerance):
+            return 'succeeded'
+        return 'violated' if late > goal_time_tolerance else 'running'
+
+    def hold(self) -> None:
+        """Stop where the arm is (a cancelled goal)."""
+        self.trajectory = None
+        self.world.command_arm(self.world.joint_positions())
 
     @property
     def trajectory_done(self) -> bool:

@@ -7,7 +7,14 @@ its own timers on the wall clock, stepping physics at ``real_time_factor``.
 import json
 import time
 
+import numpy as np
+from control_msgs.action import FollowJointTrajectory, GripperCommand
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
+
+from hdp_motion import panda
+from hdp_msgs_py.conversions import duration_to_seconds
 
 from hdp_msgs_py import ros, topics
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
@@ -17,6 +24,12 @@ from .robot_state import robot_description
 from .world import TIME_STEP
 
 _MAX_STEPS_PER_TICK = 48              # catch up at most 0.2 s of sim time per tick
+# joint_trajectory_controller's defaults when a goal sets none: its goal time tolerance, and a
+# goal tolerance per joint (rad) that an arm at rest on its last point meets.
+DEFAULT_GOAL_TOLERANCE = 0.02
+DEFAULT_GOAL_TIME_TOLERANCE = 1.0
+GRIPPER_SETTLE_S = 3.0                 # franka_gripper's moves end within this (sim time)
+GRIPPER_REACHED = 0.005                # m of width: franka_gripper's grasp epsilon
 
 
 class SimBridgeNode(ros.Node):
@@ -61,6 +74,12 @@ class SimBridgeNode(ros.Node):
         self.create_subscription(JointTrajectory, topics.GRIPPER_TRAJECTORY, self._on_gripper, 10)
         self.create_subscription(String, topics.SIM_RESET, self._on_reset, 10)
         self.create_subscription(String, topics.SIM_CAMERAS, self._on_cameras, 10)
+        # The same commands as actions, as joint_trajectory_controller and franka_gripper take them.
+        self._tick_waiters: list[Future] = []
+        ActionServer(self, FollowJointTrajectory, topics.ARM_ACTION, self._execute_arm,
+                     goal_callback=self._arm_goal, cancel_callback=lambda _: CancelResponse.ACCEPT)
+        ActionServer(self, GripperCommand, topics.GRIPPER_ACTION, self._execute_gripper,
+                     cancel_callback=lambda _: CancelResponse.ACCEPT)
 
         self._reset(p['task'], p['seed'], None if p['variation'] < 0 else p['variation'])
         # Two latched messages, as a robot's calibration and robot_state_publisher each send
@@ -110,8 +129,83 @@ class SimBridgeNode(ros.Node):
         except ValueError as err:
             self.status.error(f'rejected gripper command: {err}')
 
+    def _arm_goal(self, goal):
+        try:
+            self.bridge.check_arm(goal.trajectory)
+        except ValueError as err:
+            self.status.error(f'rejected arm goal: {err}')
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    async def _execute_arm(self, goal_handle):
+        """Run the goal's trajectory (replacing any other) and answer as joint_trajectory_controller."""
+        request, result = goal_handle.request, FollowJointTrajectory.Result()
+        try:
+            self.bridge.command_arm(request.trajectory)
+        except ValueError as err:          # the arm moved on since the goal was checked
+            result.error_code, result.error_string = result.INVALID_GOAL, str(err)
+            goal_handle.abort()
+            return result
+        active = self.bridge.trajectory
+        tolerance = np.full(7, DEFAULT_GOAL_TOLERANCE)
+        for given in request.goal_tolerance:
+            if given.name in panda.ARM_JOINTS and given.position > 0:
+                tolerance[list(panda.ARM_JOINTS).index(given.name)] = given.position
+        time_tolerance = duration_to_seconds(request.goal_time_tolerance) or DEFAULT_GOAL_TIME_TOLERANCE
+        self.status.info(f'executing an arm goal of {len(request.trajectory.points)} points')
+        while True:
+            await self._next_tick()
+            if goal_handle.is_cancel_requested:
+                self.bridge.hold()
+                goal_handle.canceled()
+                self.status.info('arm goal cancelled: holding where the arm is')
+                return result
+            state = self.bridge.arm_goal_state(active, tolerance, time_tolerance)
+            if state == 'succeeded':
+                goal_handle.succeed()
+                return result
+            if state != 'running':
+                result.error_code = result.GOAL_TOLERANCE_VIOLATED if state == 'violated' else result.INVALID_GOAL
+                result.error_string = ('not within the goal tolerance in time' if state == 'violated'
+                                       else 'preempted by another trajectory')
+                goal_handle.abort()
+                return result
+
+    async def _execute_gripper(self, goal_handle):
+        """Open or close as franka_gripper's gripper_action does: position is half the target width;
+        reached_goal when the fingers end within its grasp epsilon of it (closing on an object does
+        not, and aborts, though the object is held)."""
+        target = 2 * goal_handle.request.command.position
+        result = GripperCommand.Result()
+        if not 0.0 <= target <= panda.GRIPPER_OPEN_WIDTH + 1e-6:
+            goal_handle.abort()
+            return result
+        self.bridge.world.command_gripper(target >= panda.GRIPPER_OPEN_WIDTH / 2)
+        start, width, still_since = self.bridge.sim_time, self.bridge.world.gripper_width(), self.bridge.sim_time
+        while self.bridge.sim_time - start < GRIPPER_SETTLE_S and self.bridge.sim_time - still_since < 0.2:
+            await self._next_tick()
+            if goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+                return result
+            if abs(self.bridge.world.gripper_width() - width) > 1e-4:
+                width, still_since = self.bridge.world.gripper_width(), self.bridge.sim_time
+        result.position = self.bridge.world.gripper_width()
+        result.reached_goal = abs(result.position - target) <= GRIPPER_REACHED
+        result.stalled = not result.reached_goal
+        (goal_handle.succeed if result.reached_goal else goal_handle.abort)()
+        return result
+
+    def _next_tick(self) -> Future:
+        """A future done at the next physics tick: action goals wait on the simulation with it."""
+        future = Future()
+        self._tick_waiters.append(future)
+        return future
+
     def _tick(self):
         """Step physics up to where the wall clock (times the real-time factor) says."""
+        waiters, self._tick_waiters = self._tick_waiters, []
+        for future in waiters:
+            future.set_result(None)
         due = _MAX_STEPS_PER_TICK
         if self._rtf > 0:
             due = int((time.monotonic() - self._wall_start) * self._rtf / TIME_STEP) - self._steps
