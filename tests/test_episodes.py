@@ -282,3 +282,24 @@ def test_damaged_files_are_value_errors(bag, tmp_path):
     (garbage / 'metadata.yaml').write_text('rosbag2_bagfile_information: [unclosed')
     with pytest.raises(EpisodeError, match='not rosbag2 metadata'):
         read_episode(garbage)
+
+
+def test_an_fr3_recording_names_its_robot_and_reads_with_the_fr3_joints(tmp_path):
+    """`ros2 bag record --custom-data hdp.robot=fr3`: the joints are fr3_joint1..7 and
+    fr3_finger_joint1/2, read as a Panda recording is; an unknown robot is refused."""
+    q, v, fingers = synthetic_motion()
+    names = [n.replace('panda', 'fr3', 1) for n in [*ARM_JOINTS, *FINGER_JOINTS]]
+
+    def record(name, metadata):
+        with EpisodeWriter(tmp_path / name, metadata) as episode:
+            for i in range(FRAMES):
+                episode.write(topics.JOINT_STATES, JointState(name=names, position=[*q[i], fingers[i], fingers[i]],
+                                                              velocity=[*v[i], 0.0, 0.0]), stamp(i))
+        return tmp_path / name
+    with pytest.raises(EpisodeError, match='lacks joints'):
+        read_episode(record('unnamed', {}))                  # a Panda's names by default
+    episode = read_episode(record('fr3', {'robot': 'fr3'}))
+    assert np.allclose(episode.joint_states.position, q)
+    assert np.allclose(episode.joint_states.gripper_width, 2 * fingers)
+    with pytest.raises(EpisodeError, match="hdp.robot is 'ur5'; robots: panda, fr3"):
+        read_episode(record('ur5', {'robot': 'ur5'}))

@@ -43,7 +43,9 @@ from rosbags.typesys import Stores, get_typestore
 from . import cdr, topics
 from .keyframes import DEFAULT_STOPPED_BUFFER, DEFAULT_STOPPING_DELTA, discover_keyframes
 from .message import Message, from_rclpy, get_message, type_name_of
-from hdp_motion.panda import ARM_JOINTS, FINGER_JOINTS, FINGER_MAX, GRIPPER_OPEN_WIDTH
+from hdp_motion.panda import FINGER_JOINTS, FINGER_MAX, GRIPPER_OPEN_WIDTH, ROBOT_LIMITS, joint_names
+
+ROBOTS = tuple(ROBOT_LIMITS)          # the arms a recording may come from (hdp.robot)
 
 METADATA_PREFIX = 'hdp.'
 DEFAULT_MAX_BYTES = 2 * 1024 ** 3
@@ -176,7 +178,7 @@ class EpisodeWriter:
 class JointStates:
     """The arm's state at each /joint_states message, T frames in bag order.
 
-    t: (T,) s. position, velocity: (T, 7) rad, rad/s in ARM_JOINTS order.
+    t: (T,) s. position, velocity: (T, 7) rad, rad/s in the arm joints' order (joint1..7).
     gripper_width: (T,) m between the fingers. gripper_open: (T,) bool, the
     commanded state (from the gripper command topic when recorded, else the
     fingers being fully open): what the keyframe heuristic expects. A gripper
@@ -364,19 +366,25 @@ def _check_metadata(path: Path, info: dict, max_bytes: int, max_messages: int) -
 
 
 def read_episode(path, max_bytes: int = DEFAULT_MAX_BYTES, max_messages: int = DEFAULT_MAX_MESSAGES,
-                 arm_joints=ARM_JOINTS, finger_joints=FINGER_JOINTS) -> Episode:
+                 arm_joints=None, finger_joints=None) -> Episode:
     """Read and validate the episode bag at ``path``; EpisodeError (ValueError) on any problem.
 
     One pass over the file: joint states, instruction, /tf_static, camera
     infos and gripper commands are decoded; of image topics only the times
     are kept. ``arm_joints`` and ``finger_joints`` name the joints to pick
-    from /joint_states (e.g. panda.joint_names('fr3') for an FR3).
+    from /joint_states; by default the robot's that the bag's ``hdp.robot`` metadata names
+    ('panda', the default, or 'fr3': `ros2 bag record --custom-data hdp.robot=fr3`).
     """
     path = Path(path)
     info = _bag_info(path)
     metadata = _hdp_metadata(info, path)
     _check_metadata(path, info, max_bytes, max_messages)
-    rows = _JointRows(f'{path} {topics.JOINT_STATES}', tuple(arm_joints), tuple(finger_joints))
+    robot = metadata.get('robot', 'panda')
+    if robot not in ROBOTS:
+        raise EpisodeError(f'{path}: hdp.robot is {robot!r}; robots: {", ".join(ROBOTS)}')
+    rows = _JointRows(f'{path} {topics.JOINT_STATES}',
+                      tuple(arm_joints or joint_names(robot)),
+                      tuple(finger_joints or (name.replace('panda', robot, 1) for name in FINGER_JOINTS)))
     try:
         with Reader(path) as reader:
             types = {c.topic: c.msgtype for c in reader.connections}
