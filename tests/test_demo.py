@@ -285,16 +285,17 @@ def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     from hdp_bringup.demo.recording import RECORDED
     with AnyReader([out / 'bag']) as reader:
         assert {c.topic for c in reader.connections} == set(RECORDED)
-        seen, tf_times, joint1 = set(), [], []
+        seen, joint1, nbp_frames = set(), [], 0
         for connection, _, raw in reader.messages():
             msg = reader.deserialize(raw, connection.msgtype)
             seen.add(connection.topic)
-            if connection.topic == '/tf':
-                (link1,) = [t for t in msg.transforms if t.child_frame_id == 'panda_link1']
-                joint1.append(link1.transform.rotation.z)
+            if connection.topic == '/tf':       # the sim's links and the planner's NBP frames
+                joint1 += [t.transform.rotation.z for t in msg.transforms if t.child_frame_id == 'panda_link1']
+                nbp_frames += sum(t.child_frame_id == 'hdp_next_best_pose' for t in msg.transforms)
     missing = set(RECORDED) - seen - {'/hdp/planner/cloud'}        # the cloud only with publish_cloud
     assert not missing, missing
     assert len(joint1) > 100 and max(joint1) - min(joint1) > 1e-3     # the arm turned
+    assert nbp_frames == len(episode['segments'])
 
     # A one-episode recording is a demonstration as `ros2 bag record --custom-data` writes one
     # on a robot: it reads as an episode and the agent trains on it.

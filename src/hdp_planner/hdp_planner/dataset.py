@@ -62,24 +62,35 @@ def _depth_metres(msg) -> np.ndarray:
 
 def camera_frames(episode) -> list[tuple[float, dict]]:
     """[(t, camera -> (rgb (H, W, 3) uint8, depth (H, W) float32 m))] at each frame of the first camera
-    that every camera has a colour and depth frame for (within FRAME_PAIRING)."""
+    that every camera has a colour and depth frame for, taken within FRAME_PAIRING of it.
+
+    Frames are paired by their capture stamps (header.stamp) and placed at the first camera's
+    bag time: `ros2 bag record` stamps each message on arrival, and the cameras' frames arrive
+    apart (a simulator renders them one after the other).
+    """
     streams = {}
     for camera in topics.CAMERAS:
         colour = list(episode.messages(topics.color_image(camera)))
         depth = list(episode.messages(topics.depth_image(camera)))
-        streams[camera] = (colour, depth, np.array([t for t, _ in colour]), np.array([t for t, _ in depth]))
+        streams[camera] = (colour, depth, _captured(colour), _captured(depth))
     frames = []
-    for t, _ in streams[topics.CAMERAS[0]][0]:
+    first_colour, _, first_captured, _ = streams[topics.CAMERAS[0]]
+    for (t, _), captured in zip(first_colour, first_captured):
         frame = {}
         for camera, (colour, depth, colour_t, depth_t) in streams.items():
-            i, j = np.abs(colour_t - t).argmin(), np.abs(depth_t - t).argmin()
-            if abs(colour_t[i] - t) > FRAME_PAIRING or abs(depth_t[j] - t) > FRAME_PAIRING:
+            i, j = np.abs(colour_t - captured).argmin(), np.abs(depth_t - captured).argmin()
+            if abs(colour_t[i] - captured) > FRAME_PAIRING or abs(depth_t[j] - captured) > FRAME_PAIRING:
                 break
             rgb = image_to_numpy(colour[i][1])
             frame[camera] = (rgb[..., ::-1] if colour[i][1].encoding == 'bgr8' else rgb, _depth_metres(depth[j][1]))
         else:
             frames.append((t, frame))
     return frames
+
+
+def _captured(messages) -> np.ndarray:
+    """(N,) s: the header stamps of [(t, Image)]."""
+    return np.array([msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 for _, msg in messages])
 
 
 def camera_geometry(episode) -> tuple[dict, dict]:
@@ -118,6 +129,9 @@ def episode_samples(episode) -> dict:
         clouds.append(scene_points(frame, intrinsics, to_world))
         state.append(now)
         target.append(later[0])
+    if not clouds:
+        raise ValueError(f'{episode.path}: no sample: no frame with every camera\'s colour and depth '
+                         f'before a keyframe the arm still has to reach ({len(keyframes)} keyframes)')
     target_xyz, target_quat = keyframe_xyz[target].reshape(-1, 3), keyframe_quat[target].reshape(-1, 4)
     target = keyframes[target]
     return {

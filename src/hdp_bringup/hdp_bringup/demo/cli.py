@@ -7,6 +7,7 @@ watcher.run_episode and writes what it saw.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -28,6 +29,7 @@ METHODS = ('rkd', 'planner', 'pose_ik', 'joint')      # controller_node's `metho
 SAMPLERS = ('ddim', 'ddpm')                            # controller_node's `sampler` parameter
 DEFAULT_SEED = 1000            # evaluation seeds start here, apart from every training seed
 SAFE_DOMAINS = range(1, 102)   # ROS_DOMAIN_IDs whose ports stay below Linux's ephemeral range
+RECORD_DRAIN_S = 0.5           # spun after the last episode, so the recording gets the last messages
 
 
 def pick_domain(env, rng: random.Random) -> tuple[int, bool]:
@@ -153,6 +155,8 @@ def _run(session: Session, args, records, logs_by_episode, started, say) -> int:
         return _episodes(session, args, records, logs_by_episode, started, say)
     finally:
         if recorder is not None:
+            with contextlib.suppress(Interrupted, GraphDown):     # what is still on its way: the outcome
+                session.spin_until(lambda: False, RECORD_DRAIN_S)
             recorder.close(episode_metadata(records))
             say(f"recorded {sum(recorder.counts.values())} messages in {recorder.path} (Foxglove opens it)")
 
