@@ -43,8 +43,8 @@ class ControllerNode(ros.Node):
         'reach_tolerance_deg': (REACH_TOLERANCE_DEG, 'a plan ending turned farther from its NBP is refused (deg)'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
         'arm_interface': ('topic', "topic: JointTrajectory to the controller's topic; action: FollowJointTrajectory"),
-        'arm_action': (topics.ARM_ACTION, "the FollowJointTrajectory action (a JTC's <controller>/follow_joint_trajectory)"),
-        'gripper_interface': ('topic', 'topic: JointTrajectory of the fingers; action: GripperCommand (franka_gripper)'),
+        'arm_action': (topics.ARM_ACTION, "FollowJointTrajectory action: a JTC's <controller>/follow_joint_trajectory"),
+        'gripper_interface': ('topic', 'topic: JointTrajectory of the fingers; action: GripperCommand (franka)'),
         'gripper_action': (topics.GRIPPER_ACTION, 'the GripperCommand action (franka_gripper serves gripper_action)'),
     }
 

@@ -14,9 +14,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from hdp_motion import panda
-from hdp_msgs_py.conversions import duration_to_seconds
-
 from hdp_msgs_py import ros, topics
+from hdp_msgs_py.conversions import duration_to_seconds
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
 
 from .bridge import SimBridge, parse_reset
@@ -29,6 +28,7 @@ _MAX_STEPS_PER_TICK = 48              # catch up at most 0.2 s of sim time per t
 DEFAULT_GOAL_TOLERANCE = 0.02
 DEFAULT_GOAL_TIME_TOLERANCE = 1.0
 GRIPPER_SETTLE_S = 3.0                 # franka_gripper's moves end within this (sim time)
+GRIPPER_STILL_S = 0.2                  # fingers unmoved this long have stopped (on the target or an object)
 GRIPPER_REACHED = 0.005                # m of width: franka_gripper's grasp epsilon
 
 
@@ -182,7 +182,7 @@ class SimBridgeNode(ros.Node):
             return result
         self.bridge.world.command_gripper(target >= panda.GRIPPER_OPEN_WIDTH / 2)
         start, width, still_since = self.bridge.sim_time, self.bridge.world.gripper_width(), self.bridge.sim_time
-        while self.bridge.sim_time - start < GRIPPER_SETTLE_S and self.bridge.sim_time - still_since < 0.2:
+        while self.bridge.sim_time - start < GRIPPER_SETTLE_S and self.bridge.sim_time - still_since < GRIPPER_STILL_S:
             await self._next_tick()
             if goal_handle.is_cancel_requested:
                 goal_handle.canceled()
@@ -192,7 +192,10 @@ class SimBridgeNode(ros.Node):
         result.position = self.bridge.world.gripper_width()
         result.reached_goal = abs(result.position - target) <= GRIPPER_REACHED
         result.stalled = not result.reached_goal
-        (goal_handle.succeed if result.reached_goal else goal_handle.abort)()
+        if result.reached_goal:
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
         return result
 
     def _next_tick(self) -> Future:
