@@ -278,3 +278,21 @@ def test_cli_help(command):
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert '--data' in result.stdout
+
+
+def test_an_episode_whose_cameras_never_pair_says_so(monkeypatch):
+    """No frame with every camera's colour and depth before a keyframe: one clear error naming the
+    bag, not a numpy one (a recording whose cameras ran apart)."""
+    from types import SimpleNamespace
+
+    from hdp_motion import panda
+    from hdp_msgs_py.episodes import JointStates
+    from hdp_planner import dataset
+    t = np.linspace(0.0, 2.0, 50)
+    still = np.zeros((50, 7))
+    states = JointStates(t, np.tile(panda.HOME, (50, 1)), still, np.full(50, 0.08), np.ones(50, bool))
+    episode = SimpleNamespace(path='demos/open_drawer_0001', joint_states=states, keyframes=lambda: [0, 49])
+    monkeypatch.setattr(dataset, 'camera_geometry', lambda episode: ({}, {}))
+    monkeypatch.setattr(dataset, 'camera_frames', lambda episode: [])
+    with pytest.raises(ValueError, match=r"demos/open_drawer_0001: no sample: no frame with every camera's"):
+        dataset.episode_samples(episode)
