@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from hdp_msgs_py.conversions import Intrinsics, quat_to_matrix
+from hdp_msgs_py.curves import read_curves
 from hdp_msgs_py.workspace import WORKSPACE
 from hdp_planner import checkpoint, language, rotations, voxels
 from hdp_planner.agent import NextBestPoseAgent
@@ -227,6 +228,8 @@ def test_train_continues_refuses_other_options_and_fine_tunes_with_the_union_of_
     out = tmp_path / 'agent.pt'
     train(data, out, steps=2, **options)
     assert checkpoint.load(out)['step'] == 2 and checkpoint.load(out)['training_seeds'] == {'reach_target': [21]}
+    columns, rows = read_curves(tmp_path / 'agent_curves.csv')        # the training curves beside it
+    assert {'lr', 'total'} <= set(columns) and [r['step'] for r in rows] == [2]
     logged = []
     train(data, out, steps=2, **{**options, 'log': logged.append})
     assert 'continuing' in logged[0] and 'from step 2' in logged[0]

@@ -18,6 +18,7 @@ from hdp_controller.refine import goal_error, refine, smooth_poses
 from hdp_controller.rk_diffuser import RKDConfig, RKDiffuser, joint_motion, joints_from_motion
 from hdp_controller.unet import TemporalUnet
 from hdp_motion import kinematics, panda
+from hdp_msgs_py.curves import read_curves
 from hdp_msgs_py.episodes import list_episodes, read_episode
 
 HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
@@ -347,6 +348,8 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     first = subprocess.run([*base, '--steps', '2'], text=True, capture_output=True, timeout=300)
     assert first.returncode == 0, first.stderr
     assert checkpoint.read(out)['training']['step'] == 2
+    columns, rows = read_curves(tmp_path / 'rkd_curves.csv')           # the training curves beside it
+    assert 'lr' in columns and len(columns) > 2 and [r['step'] for r in rows] == [2]
     again = subprocess.run([*base, '--steps', '2'], text=True, capture_output=True, timeout=300)
     assert again.returncode == 0 and 'resuming from' in again.stdout
     other = subprocess.run([*base, '--steps', '4'], text=True, capture_output=True, timeout=300)

@@ -33,6 +33,7 @@ setup(
             'eval.low-level = hdp_eval.cli:configure',
             'eval.hierarchy = hdp_eval.cli:configure_hierarchy',
             'plot.low-level = hdp_eval.cli:configure_plot',
+            'plot.curves = hdp_eval.curves_plot:configure',
             'bench.controller = hdp_eval.bench:configure',
         ],
     },

@@ -1,8 +1,8 @@
 """Training loop for RK-Diffuser: seeded, resumable, CPU by default.
 
-Writes two files: ``OUT`` (the EMA weights + config + provenance: what
-inference and the release need) and ``OUT.resume`` (raw weights, optimiser,
-schedule and RNG state). Starting again with the same OUT, data and config
+Writes ``OUT`` (the EMA weights + config + provenance: what inference and the
+release need), ``OUT.resume`` (raw weights, optimiser, schedule and RNG state) and
+the training curves (``<OUT stem>_curves.csv``: losses and learning rate). Starting again with the same OUT, data and config
 continues from ``OUT.resume``; a different config refuses to mix.
 """
 
@@ -19,11 +19,15 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
 from hdp_msgs_py import checkpoints
+from hdp_msgs_py.curves import CurveLog, curves_path
 from hdp_msgs_py.episodes import union_of_seeds
 
 from . import checkpoint
 from .dataset import SegmentDataset, load_segments
 from .rk_diffuser import RKDConfig, RKDiffuser, parameter_count
+
+
+CURVE_EVERY = 50       # steps per row of the training curves (means over them)
 
 
 @dataclasses.dataclass
@@ -89,6 +93,7 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     log(f'{len(segs)} segments from {len(np.unique(np.char.add(segs.task, segs.seed.astype(str))))} episodes; '
         f'{parameter_count(model) / 1e6:.2f} M parameters')
     batches = _batches(dataset, train_config.batch_size, train_config.seed + step, device)
+    curves = CurveLog(curves_path(out), resume_step=step)
     model.train()
     started = time.monotonic() - elapsed
     losses = []
@@ -105,6 +110,9 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
             losses.append(parts)
             bar.update(1)
             bar.set_postfix({k: f'{np.mean([p[k] for p in losses[-50:]]):.4f}' for k in parts})
+            if step % CURVE_EVERY == 0 or step == train_config.steps:
+                curves.add(step, lr=schedule.get_last_lr()[0],
+                           **{k: float(np.mean([p[k] for p in losses[-CURVE_EVERY:]])) for k in parts})
             if step % train_config.save_every == 0 or step == train_config.steps:
                 elapsed = time.monotonic() - started
                 _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config,

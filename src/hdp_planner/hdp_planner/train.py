@@ -18,6 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from hdp_msgs_py.curves import CurveLog, curves_path
 from hdp_msgs_py.episodes import union_of_seeds
 
 from . import checkpoint, rotations, voxels
@@ -139,6 +140,7 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
     rng = np.random.default_rng([seed, step])
     torch.manual_seed(seed * 1_000_003 + step)
     model.train()
+    curves = CurveLog(curves_path(out), resume_step=step)
     started, running, counted = time.monotonic(), {}, 0
     with tqdm(total=steps, initial=step, unit='step', disable=not progress, mininterval=30) as bar:
         while step < steps:
@@ -158,10 +160,14 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
             if step % 100 == 0 or step == steps:
                 bar.write(f'step {step}: ' + ' '.join(f'{k} {v / counted:.3f}' for k, v in running.items())
                           + f' ({(time.monotonic() - started) / 60:.1f} min)')
+                curves.add(step, lr=learning_rate(step - 1, steps, lr), **{k: v / counted for k, v in running.items()})
                 running, counted = {}, 0
             if val and (step % val_every == 0 or step == steps):
                 metrics = {'step': step, 'validation': offline_metrics(model, val)}
                 bar.write(f'validation at step {step}:\n{format_metrics(metrics["validation"])}')
+                overall = metrics['validation']['overall']
+                curves.add(step, **{f'val_{k}': overall[k] for k in ('translation_cm', 'rotation_symmetric_deg',
+                                                                    'gripper_accuracy')})
             if step % save_every == 0 or step == steps:
                 checkpoint.save(out, model, optimizer, step, train_config, metrics, training_seeds)
     return metrics
