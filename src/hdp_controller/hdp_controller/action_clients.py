@@ -50,11 +50,12 @@ class ArmAction:
 
     def segment_ended(self, result_header) -> None:
         """A segment result went out: if it was not 'done', the segment's goal is cancelled."""
-        if (self._active is not None and stamp_ns(self._active[0]) == stamp_ns(result_header.stamp)
-                and result_header.frame_id != topics.SEGMENT_DONE):
-            self._cancel()
-        elif self._active is not None and stamp_ns(self._active[0]) == stamp_ns(result_header.stamp):
+        if self._active is None or stamp_ns(self._active[0]) != stamp_ns(result_header.stamp):
+            return
+        if result_header.frame_id == topics.SEGMENT_DONE:
             self._active = None
+        else:
+            self._cancel()
 
     def _cancel(self) -> None:
         if self._active is not None and self._active[1] is not None:

@@ -73,7 +73,7 @@ class ControllerNode(ros.Node):
         self.logic = SegmentController(
             policy, needs_points=p['method'] != 'planner', velocity_scale=p['velocity_scale'],
             segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
-            finger_joints=tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS),
+            finger_joints=panda.finger_joint_names(prefix),
             reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits)
 
         self.status = ros.Status(self)

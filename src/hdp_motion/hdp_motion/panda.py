@@ -62,6 +62,11 @@ def joint_names(prefix: str = 'panda') -> tuple[str, ...]:
     return tuple(name.replace('panda', prefix, 1) for name in ARM_JOINTS)
 
 
+def finger_joint_names(prefix: str = 'panda') -> tuple[str, ...]:
+    """Finger joint names for a robot prefix ('panda', or 'fr3' for the FR3)."""
+    return tuple(name.replace('panda', prefix, 1) for name in FINGER_JOINTS)
+
+
 def within_limits(q, tol: float = 1e-6, limits: JointLimits = ROBOT_LIMITS['panda']) -> bool:
     q = np.asarray(q, dtype=float)
     return bool(np.all(q >= limits.lower - tol) and np.all(q <= limits.upper + tol))

@@ -43,7 +43,7 @@ from rosbags.typesys import Stores, get_typestore
 from . import cdr, topics
 from .keyframes import DEFAULT_STOPPED_BUFFER, DEFAULT_STOPPING_DELTA, discover_keyframes
 from .message import Message, from_rclpy, get_message, type_name_of
-from hdp_motion.panda import FINGER_JOINTS, FINGER_MAX, GRIPPER_OPEN_WIDTH, ROBOT_LIMITS, joint_names
+from hdp_motion.panda import FINGER_MAX, GRIPPER_OPEN_WIDTH, ROBOT_LIMITS, finger_joint_names, joint_names
 
 ROBOTS = tuple(ROBOT_LIMITS)          # the arms a recording may come from (hdp.robot)
 
@@ -384,7 +384,7 @@ def read_episode(path, max_bytes: int = DEFAULT_MAX_BYTES, max_messages: int = D
         raise EpisodeError(f'{path}: hdp.robot is {robot!r}; robots: {", ".join(ROBOTS)}')
     rows = _JointRows(f'{path} {topics.JOINT_STATES}',
                       tuple(arm_joints or joint_names(robot)),
-                      tuple(finger_joints or (name.replace('panda', robot, 1) for name in FINGER_JOINTS)))
+                      tuple(finger_joints or finger_joint_names(robot)))
     try:
         with Reader(path) as reader:
             types = {c.topic: c.msgtype for c in reader.connections}

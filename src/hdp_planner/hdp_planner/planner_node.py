@@ -56,7 +56,7 @@ class PlannerNode(ros.Node):
             raise ros.StartupError(f'cannot load the next-best-pose agent: {err}') from None
         prefix = p['joint_prefix']
         observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
-                                    tuple(n.replace('panda', prefix, 1) for n in panda.FINGER_JOINTS))
+                                    panda.finger_joint_names(prefix))
         self.loop = PlannerLoop(agent, agent.model.config.vocabulary, p['max_segments'], p['camera_timeout_s'],
                                 p['result_timeout_s'], observations, p['min_confidence'])
 

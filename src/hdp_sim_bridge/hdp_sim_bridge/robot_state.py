@@ -65,9 +65,11 @@ class LinkTransforms:
                                 transform=matrix_to_transform(matrix))
 
     def _joint_transforms(self, fixed: bool, stamp) -> list[TransformStamped]:
-        return [self._stamped(j.parent, j.child,
-                              np.linalg.inv(self._world_pose(j.parent_index)) @ self._world_pose(j.index), stamp)
-                for j in self.joints if j.fixed == fixed]
+        joints = [j for j in self.joints if j.fixed == fixed]
+        # Each link's pose read once: a parent (the hand) serves several children (both fingers).
+        poses = {link: self._world_pose(link) for j in joints for link in (j.parent_index, j.index)}
+        return [self._stamped(j.parent, j.child, np.linalg.inv(poses[j.parent_index]) @ poses[j.index], stamp)
+                for j in joints]
 
     def static(self, stamp) -> list[TransformStamped]:
         """`world -> panda_link0` and every fixed joint (for /tf_static)."""
