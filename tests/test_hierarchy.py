@@ -76,6 +76,19 @@ def test_seen_and_heldout_instructions_differ():
         assert heldout.split()[0] == held.split()[0]
 
 
+def test_paraphrase_instructions_and_all_phrasing_sets_side_by_side():
+    paraphrase = episode_instruction('open_drawer', 7, 2, 'paraphrase')
+    assert paraphrase in {p.format(*['top'] * p.count('{}')) for p in language.paraphrase_phrasings('open_drawer')}
+    results = evaluate(StuckAgent(), {'nbp_planner': PlannerPolicy()}, ['open_box'], 1, 4003,
+                       ('seen', 'heldout', 'paraphrase'), max_segments=1, progress=False)
+    seen, heldout, paraphrase = (results['agents']['nbp_planner'][p]['open_box']['records'][0]['instruction']
+                                 for p in ('seen', 'heldout', 'paraphrase'))
+    assert seen in language.training_phrasings('open_box') and heldout == 'raise the lid of the box'
+    assert paraphrase in language.paraphrase_phrasings('open_box')
+    assert [line.split(' | ')[1] for line in markdown_table(results).splitlines()[2:]] == ['seen', 'heldout',
+                                                                                          'paraphrase']
+
+
 def test_evaluate_table_and_training_seed_refusal():
     planner = PlannerPolicy()
     results = evaluate(StuckAgent(), {'nbp_planner': planner}, ['reach_target'], 1, 4003, max_segments=1,

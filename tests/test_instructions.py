@@ -42,3 +42,37 @@ def test_task_lists_by_name_group_or_comma_list():
     for bad in ('make_tea', 'open_oven,make_tea', '', ','):
         with pytest.raises(ValueError, match='unknown task'):
             instructions.task_names(bad)
+
+
+def _filled(task: str, templates) -> set[str]:
+    """Every instruction ``templates`` give over the task's variations, as words."""
+    return {' '.join(language.words(t.format(*[v] * t.count('{}')))) for t in templates
+            for v in instructions.TASKS[task].variations}
+
+
+def test_every_task_has_five_paraphrases_apart_from_its_templates():
+    for name, task in instructions.TASKS.items():
+        paraphrases = language.paraphrase_phrasings(name)
+        assert len(set(paraphrases)) == len(paraphrases) >= 5, name
+        named = task.variations != ('',)
+        assert all(('{}' in p) == named for p in paraphrases), name      # fills its variation as templates do
+        assert not set(paraphrases) & set(task.phrasings), name
+        assert not _filled(name, paraphrases) & _filled(name, task.phrasings), name
+        rng = np.random.default_rng(0)
+        drawn = {instructions.instruction(name, int(rng.integers(len(task.variations))),
+                                          language.training_phrasings(name), rng) for _ in range(300)}
+        assert not drawn & {p.format(*[v] * p.count('{}')) for p in paraphrases for v in task.variations}
+
+
+def test_offline_evaluation_draws_paraphrases_of_the_samples_variation():
+    from hdp_planner.dataset import KeyframeDataset
+    from hdp_planner.evaluate import evaluation_item
+    from test_planner_agent import synthetic_episode
+    rng = np.random.default_rng(0)
+    dataset = KeyframeDataset([synthetic_episode(rng, 'open_drawer')])           # variation 1: middle
+    middle = {p.format(*['middle'] * p.count('{}')) for p in language.paraphrase_phrasings('open_drawer')}
+    drawn = {evaluation_item(dataset, 0, rng, 'paraphrase').instruction for _ in range(40)}
+    assert drawn == middle
+    assert evaluation_item(dataset, 0, rng, 'heldout').instruction == 'slide the middle drawer open'
+    with pytest.raises(ValueError, match='unknown phrasing'):
+        evaluation_item(dataset, 0, rng, 'nonsense')

@@ -32,6 +32,7 @@ setup(
         'hdp.commands': [
             'train.high-level = hdp_planner.cli:configure_train',
             'eval.high-level-offline = hdp_planner.cli:configure_eval',
+            'bench.language = hdp_planner.cli:configure_bench_language',
         ],
     },
 )

@@ -31,7 +31,11 @@ from .low_level_eval import check_seed_hygiene, execute_segment, world_scene
 from .observation import front_points, segment_request
 
 AGENTS = {'hdp': 'rkd', 'nbp_planner': 'planner', 'nbp_joint': 'joint'}
-PHRASINGS = ('seen', 'heldout', 'nonsense')
+# seen: training phrasings; heldout: the one kept out of training; paraphrase: the paraphrase set
+# (other verbs, word orders, object names); nonsense: made-up words (below). Each set is a row of
+# the table, so `--phrasings seen,heldout,paraphrase` (or all) reports them side by side.
+PHRASINGS = ('seen', 'heldout', 'paraphrase', 'nonsense')
+TEMPLATES = {'heldout': language.heldout_phrasings, 'paraphrase': language.paraphrase_phrasings}
 # Made-up words for 'nonsense' instructions: one word of the task's own instruction is kept, so
 # the planner's vocabulary check lets them through and only the agent's confidence can refuse.
 PSEUDO_WORDS = ('blick', 'zorf', 'quib', 'flom', 'trask', 'wunt', 'glimp', 'sprov', 'dax', 'vurl')
@@ -56,12 +60,12 @@ class HierarchyRecord:
 
 
 def episode_instruction(task_name: str, seed: int, variation: int, phrasing: str) -> str:
-    """The instruction of one evaluation episode: a phrasing seen in training, a held-out one, or
-    'nonsense': the seen one with every word but one content word made up."""
+    """The instruction of one evaluation episode: a phrasing seen in training, a held-out one, a
+    paraphrase, or 'nonsense': the seen one with every word but one content word made up."""
     if phrasing not in PHRASINGS:
         raise ValueError(f'unknown phrasing {phrasing!r}; phrasings: {", ".join(PHRASINGS)}')
-    phrasings = language.heldout_phrasings(task_name) if phrasing == 'heldout' else language.training_phrasings(task_name)
-    text = language.instruction(task_name, variation, phrasings, np.random.default_rng(seed))
+    templates = TEMPLATES.get(phrasing, language.training_phrasings)(task_name)
+    text = language.instruction(task_name, variation, templates, np.random.default_rng(seed))
     return nonsense(text, np.random.default_rng([seed, 1])) if phrasing == 'nonsense' else text
 
 

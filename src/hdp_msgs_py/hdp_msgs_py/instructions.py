@@ -4,7 +4,8 @@ so the planner knows the tasks' words without the simulator.
 
 A template's ``{}`` are filled with the variation's name (every one of them, so 'grip the {}
 handle and pull the {} drawer open' names one drawer twice). The last phrasing of every task
-is held out of training.
+is held out of training. ``paraphrases`` are written apart from the templates (other verbs,
+word orders and names for the objects) and are only ever evaluated on, never trained on.
 """
 
 from __future__ import annotations
@@ -23,36 +24,60 @@ DRAWER_NAMES = ('bottom', 'middle', 'top')
 class TaskLanguage:
     variations: tuple[str, ...]
     phrasings: tuple[str, ...]
+    paraphrases: tuple[str, ...]
 
 
 TASKS = {
     'reach_target': TaskLanguage(COLOUR_NAMES, (
-        'reach the {} target', 'touch the {} ball with the panda gripper', 'reach the {} sphere')),
+        'reach the {} target', 'touch the {} ball with the panda gripper', 'reach the {} sphere'), (
+        'move the gripper to the {} ball', 'go and touch the {} sphere', 'bring your hand to the {} target',
+        'tap the {} orb', 'the {} ball: put the gripper on it')),
     'pick_up_cup': TaskLanguage(COLOUR_NAMES, (
-        'pick up the {} cup', 'lift the {} cup off the table', 'grasp the {} cup and lift it')),
+        'pick up the {} cup', 'lift the {} cup off the table', 'grasp the {} cup and lift it'), (
+        'raise the {} mug from the table', 'take hold of the {} cup and pick it up', 'grab the {} cup',
+        'lift up the {} mug', 'get the {} cup up into the air')),
     'open_drawer': TaskLanguage(DRAWER_NAMES, (
-        'open the {} drawer', 'grip the {} handle and pull the {} drawer open', 'slide the {} drawer open')),
-    'open_box': TaskLanguage(('',), ('open box', 'open the box lid', 'raise the lid of the box')),
+        'open the {} drawer', 'grip the {} handle and pull the {} drawer open', 'slide the {} drawer open'), (
+        'pull out the {} drawer', 'pull open the {} drawer', 'draw the {} drawer out towards you',
+        'take hold of the {} drawer handle and pull', 'the {} drawer: get it open')),
+    'open_box': TaskLanguage(('',), ('open box', 'open the box lid', 'raise the lid of the box'), (
+        'flip the lid of the box up', 'lift the box lid', 'swing the lid of the box open', 'pop the box open',
+        'take the lid of the box and flip it open')),
     'toilet_seat_up': TaskLanguage(('',), (
-        'lift toilet seat up', 'put the toilet seat up', 'raise the toilet seat')),
+        'lift toilet seat up', 'put the toilet seat up', 'raise the toilet seat'), (
+        'flip up the toilet seat', 'lift the seat of the toilet', 'tip the toilet seat up',
+        'move the toilet seat to the upright position', 'pull the seat of the toilet up so it stands upright')),
     'open_door': TaskLanguage(('',), (
-        'open the door', 'use the handle to open the door', 'turn the handle and pull the door open')),
+        'open the door', 'use the handle to open the door', 'turn the handle and pull the door open'), (
+        'pull the door open', 'swing the door open', 'get the door open',
+        'press down the door handle and swing the door open', 'unlatch the door and open it')),
     'take_lid_off_saucepan': TaskLanguage(('',), (
         'take lid off the saucepan', 'remove the lid from the pan',
-        'using the handle, lift the lid off of the pan', 'uncover the saucepan')),
+        'using the handle, lift the lid off of the pan', 'uncover the saucepan'), (
+        'lift the lid off the pot', 'take the cover off the saucepan', 'grab the saucepan lid and take it off',
+        'remove the cover of the pot', 'raise the lid from the cooking pot')),
     'open_grill': TaskLanguage(('',), (
         'open the grill', 'open the bbq', 'grasp the handle and raise the cover up to open the grill',
-        'open the barbecue')),
+        'open the barbecue'), (
+        'lift the lid of the grill', 'raise the barbecue lid', 'flip the grill cover open',
+        'swing up the lid of the bbq', 'pull the grill lid up')),
     'open_microwave': TaskLanguage(('',), (
         'open microwave', 'open the microwave door', 'swing the microwave door open',
-        'pull the microwave door open')),
+        'pull the microwave door open'), (
+        'pull open the door of the microwave', 'get the microwave open', 'open up the microwave',
+        'swing out the door of the microwave', 'unlatch the microwave and swing its door out')),
     'open_oven': TaskLanguage(('',), (
         'open the oven', 'open the oven door', 'pull the oven door down',
-        'grab hold of the handle and pull the oven door open')),
+        'grab hold of the handle and pull the oven door open'), (
+        'lower the oven door', 'pull down the door of the oven', 'swing the oven door down to open it',
+        'get the oven open', 'drop the oven door open by its handle')),
     'put_knife_on_chopping_board': TaskLanguage(('',), (
         'put the knife on the chopping board', 'place the knife on the chopping board',
         'pick up the knife and leave it on the chopping board',
-        'move the knife from the holder to the chopping board')),
+        'move the knife from the holder to the chopping board'), (
+        'set the knife down on the cutting board', 'lay the knife on the chopping board',
+        'take the knife out of the block and put it on the board', 'move the knife onto the cutting board',
+        'transfer the knife to the chopping board')),
 }
 
 # Task lists a --tasks argument may name: 'all', or the six the simulator had first (the

@@ -3,7 +3,8 @@
 For every sample, the full coarse-to-fine prediction against the demo's next
 keyframe: translation error (cm), rotation error (deg, geodesic; also up to
 the parallel gripper's 180 deg symmetry), gripper accuracy. Per task and
-overall (the mean over samples).
+overall (the mean over samples). Instructions are drawn from the training phrasings ('seen'),
+the held-out one ('heldout') or the paraphrase set ('paraphrase', never trained on).
 """
 
 from __future__ import annotations
@@ -11,23 +12,36 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import rotations
-from .dataset import KeyframeDataset
+from . import language, rotations
+from .dataset import Item, KeyframeDataset
 from .model import NextBestPoseNet
 from .voxels import collate_clouds
 
+PHRASING_LABELS = {'seen': 'training phrasings', 'heldout': 'held-out phrasings', 'paraphrase': 'paraphrases'}
 
-def offline_metrics(model: NextBestPoseNet, dataset: KeyframeDataset, heldout: bool = False,
+
+def evaluation_item(dataset: KeyframeDataset, i: int, rng: np.random.Generator, phrasing: str) -> Item:
+    """Sample ``i`` of ``dataset`` with an instruction in ``phrasing`` (a key of PHRASING_LABELS)."""
+    if phrasing not in PHRASING_LABELS:
+        raise ValueError(f'unknown phrasing {phrasing!r}; phrasings: {", ".join(PHRASING_LABELS)}')
+    item = dataset.item(i, rng, heldout=phrasing == 'heldout')
+    if phrasing == 'paraphrase':            # the dataset draws only training and held-out phrasings
+        variation = int(dataset.episodes[dataset.index[i][0]]['variation'])
+        item.instruction = language.instruction(item.task, variation, language.paraphrase_phrasings(item.task), rng)
+    return item
+
+
+def offline_metrics(model: NextBestPoseNet, dataset: KeyframeDataset, phrasing: str = 'seen',
                     batch: int = 32, seed: int = 0) -> dict:
     """{'overall' | task: {'translation_cm', 'rotation_deg', 'rotation_symmetric_deg',
-    'gripper_accuracy', 'samples'}}, instructions in the training (or held-out) phrasings."""
+    'gripper_accuracy', 'samples'}}, instructions in ``phrasing`` (seen, heldout, paraphrase)."""
     rng = np.random.default_rng(seed)
     device = next(model.parameters()).device
     was_training = model.training
     model.eval()
     errors = {'translation_cm': [], 'rotation_deg': [], 'rotation_symmetric_deg': [], 'gripper_accuracy': []}
     for start in range(0, len(dataset), batch):
-        items = [dataset.item(i, rng, heldout=heldout) for i in range(start, min(start + batch, len(dataset)))]
+        items = [evaluation_item(dataset, i, rng, phrasing) for i in range(start, min(start + batch, len(dataset)))]
         xyz, rgb, cloud = collate_clouds([(i.xyz, i.rgb) for i in items], device)
         proprio = torch.as_tensor(np.stack([i.proprio for i in items]), device=device)
         predicted = model.predict(xyz, rgb, cloud, [i.instruction for i in items], proprio)

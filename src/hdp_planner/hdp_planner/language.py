@@ -1,13 +1,14 @@
 """Instructions: the task phrasings, a closed-vocabulary word tokenizer and a small learned encoder.
 
-No pretrained text model is available here, and the instruction language is
-closed (the task phrasings x their variations, under 100 words), so words
-are embedded from scratch. The encoder sits behind ``InstructionEncoder``
-(texts in, token features and a pooled vector out) so a pretrained one
-(CLIP, T5) can replace it without touching the rest of the agent.
+The training language is closed (the task phrasings x their variations, under
+100 words), so WordEncoder embeds words from scratch; any other word is <unk>.
+Encoders sit behind ``InstructionEncoder`` (texts in, token features and a
+pooled vector out): sentence_encoder.SentenceEncoder, a frozen pretrained
+all-MiniLM-L6-v2, is the other one (the agent's ``language_encoder``).
 
 The last phrasing of every task is held out: training draws only from the
-others, and the offline evaluation reports both.
+others. Each task also has a paraphrase set written apart from the templates,
+never trained on; the evaluations report all three.
 """
 
 from __future__ import annotations
@@ -37,6 +38,11 @@ def training_phrasings(task: str) -> tuple[str, ...]:
 def heldout_phrasings(task: str) -> tuple[str, ...]:
     """The phrasing template of ``task`` kept out of training (its last) for the held-out evaluation."""
     return instructions.TASKS[task].phrasings[-1:]
+
+
+def paraphrase_phrasings(task: str) -> tuple[str, ...]:
+    """The paraphrase templates of ``task``: other verbs, word orders and object names, never trained on."""
+    return instructions.TASKS[task].paraphrases
 
 
 def instruction(task: str, variation: int, phrasings, rng: np.random.Generator) -> str:

@@ -21,9 +21,12 @@ from torch import nn
 from hdp_motion import panda
 
 from . import rotations, voxels
-from .language import MAX_WORDS, WordEncoder
+from .language import MAX_WORDS, InstructionEncoder, WordEncoder
 
 PROPRIO_DIM = 8        # gripper open, 7 joint positions
+# 'words': WordEncoder, learned over the task vocabulary. 'minilm': frozen all-MiniLM-L6-v2 and a
+# learned projection (sentence_encoder; imported only when chosen, it loads transformers).
+LANGUAGE_ENCODERS = ('words', 'minilm')
 
 
 def proprio_vector(joint_positions, gripper_open) -> np.ndarray:
@@ -44,6 +47,11 @@ class ModelConfig:
     max_words: int = MAX_WORDS
     fine_half_extent: float = voxels.FINE_HALF_EXTENT
     head_hidden: int = 256
+    language_encoder: str = 'words'      # checkpoints from before the choice existed are 'words'
+
+    def __post_init__(self):
+        if self.language_encoder not in LANGUAGE_ENCODERS:
+            raise ValueError(f'language_encoder {self.language_encoder!r} is not one of {LANGUAGE_ENCODERS}')
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
@@ -55,6 +63,14 @@ class ModelConfig:
         if unknown:
             raise ValueError(f'unknown model config keys {sorted(unknown)}')
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+def instruction_encoder(config: ModelConfig) -> InstructionEncoder:
+    """The language encoder ``config`` names, its output dim ``config.language_dim``."""
+    if config.language_encoder == 'minilm':
+        from .sentence_encoder import SentenceEncoder
+        return SentenceEncoder(config.language_dim)
+    return WordEncoder(config.vocabulary, config.language_dim, config.max_words)
 
 
 class ConvFiLM(nn.Module):
@@ -119,7 +135,7 @@ class NextBestPoseNet(nn.Module):
         super().__init__()
         self.config = config
         c0, _, c2 = config.channels
-        self.language = WordEncoder(config.vocabulary, config.language_dim, config.max_words)
+        self.language = instruction_encoder(config)
         self.proprio = nn.Sequential(nn.Linear(PROPRIO_DIM, 64), nn.SiLU(), nn.Linear(64, 64))
         condition_dim = config.language_dim + 64
         self.coarse = UNet3D(voxels.CHANNELS, config.channels, condition_dim)

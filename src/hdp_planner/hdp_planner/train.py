@@ -86,28 +86,39 @@ def _differences(now: dict, stored: dict) -> list[str]:
             if stored.get(section, {}).get(key) != value]
 
 
+def _stored_model_config(stored: dict, path) -> dict:
+    """A checkpoint's model config with every field this version has (an older one lacks
+    language_encoder: it reads as 'words'), for comparing with this run's."""
+    try:
+        return json.loads(json.dumps(ModelConfig.from_dict(stored['config']['model']).to_dict()))
+    except (KeyError, TypeError, ValueError) as err:
+        raise checkpoint.CheckpointError(f'{path}: invalid model config: {err!r}') from None
+
+
 def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed: int = 0, val_data=None,
           device: str = 'cpu', cache=None, save_every: int = 250, val_every: int = 1000,
-          model_config: ModelConfig | None = None, init=None, log=print, progress: bool = True) -> dict:
+          model_config: ModelConfig | None = None, init=None, log=print, progress: bool = True,
+          language_encoder: str = 'words') -> dict:
     """Train (or continue training) the checkpoint at ``out``; returns the last validation metrics.
 
     An existing ``out`` is continued when its config matches this run's
     (data, steps, batch, lr, seed, init, model); a different config is refused.
     ``init``: a checkpoint whose weights start the run (fine-tuning with a fresh
     optimiser and schedule); its model config must match, and its training seeds
-    are recorded with this data's.
+    are recorded with this data's. ``language_encoder`` ('words' or 'minilm') is used when
+    ``model_config`` is not given.
     """
     from tqdm import tqdm
     out = Path(out)
     dataset = KeyframeDataset.from_directory(data, cache, progress)
     val = KeyframeDataset.from_directory(val_data, progress=progress) if val_data else None
-    model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()))
+    model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()), language_encoder=language_encoder)
     train_config = {'data': str(Path(data).resolve()), 'steps': steps, 'batch': batch, 'lr': lr, 'seed': seed}
     model = NextBestPoseNet(model_config).to(device)
     init_seeds = {}
     if init is not None:
         start = checkpoint.load(init)
-        if start['config']['model'] != json.loads(json.dumps(model_config.to_dict())):
+        if _stored_model_config(start, init) != json.loads(json.dumps(model_config.to_dict())):
             raise checkpoint.CheckpointError(f'{init} has another model config; it cannot start this run')
         model.load_state_dict(checkpoint.build_model(start, init).state_dict())
         train_config['init'] = {'path': str(Path(init).resolve()), 'step': start['step']}
@@ -119,7 +130,8 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
     if out.exists():
         stored = checkpoint.load(out)
         wanted = {'model': model_config.to_dict(), 'train': train_config}
-        changed = _differences(json.loads(json.dumps(wanted)), stored['config'])
+        changed = _differences(json.loads(json.dumps(wanted)),
+                               {**stored['config'], 'model': _stored_model_config(stored, out)})
         if 'init' in stored['config']['train'] and 'init' not in train_config:
             changed.append(f"train.init: {stored['config']['train']['init']!r} -> None")
         if changed:
