@@ -1,6 +1,8 @@
 """Low-level evaluation (Table 2 setting): observations, the planner and pose+IK baselines,
 oracle NBPs, episodes, the results table and `hdp eval low-level`."""
 
+import json
+import os
 import subprocess
 import sys
 
@@ -218,3 +220,27 @@ def test_cli_refuses_bad_arguments(args, message):
     result = subprocess.run([*HDP, 'eval', 'low-level', *[x for kv in base.items() for x in kv]],
                             text=True, capture_output=True, timeout=60)
     assert result.returncode != 0 and message in result.stderr
+
+
+def test_torchrun_shards_the_episodes_and_gathers_one_result(tmp_path):
+    """Two processes under torchrun take every other episode; rank 0 prints one table and writes one
+    result file with every episode, as one process does."""
+    args = ['eval', 'low-level', '--methods', 'planner', '--tasks', 'reach_target,open_drawer', '--episodes', '2',
+            '--seed-start', str(SEED)]
+    one = subprocess.run([*HDP, *args, '--json', str(tmp_path / 'one.json')], text=True, capture_output=True,
+                         timeout=600)
+    assert one.returncode == 0, one.stderr
+    env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
+    two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
+                          '-m', 'hdp_msgs_py.cli.main', *args, '--json', str(tmp_path / 'two.json')],
+                         text=True, capture_output=True, timeout=600, env=env)
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert two.stdout.count('| method |') == 1
+    single, split = (json.loads((tmp_path / f'{n}.json').read_text()) for n in ('one', 'two'))
+    assert (single['processes'], split['processes']) == (1, 2)
+
+    def outcomes(results):
+        return [(r['task'], r['seed'], r['success'], r['failure']) for task in results['methods']['planner'].values()
+                for r in task['records']]
+    assert len(outcomes(split)) == 4 and outcomes(split) == outcomes(single)
+    assert split['skipped'] == single['skipped']

@@ -1,5 +1,6 @@
 """RK-Diffuser: kinematics, data preparation, networks, diffusion, refinement, checkpoints, training CLI."""
 
+import json
 import os
 import subprocess
 import sys
@@ -9,7 +10,8 @@ import pytest
 import torch
 
 from hdp_controller import checkpoint
-from hdp_controller.dataset import SegmentDataset, load_segments, resample_by_arc_length, trajectory_rank
+from hdp_controller.dataset import (SegmentDataset, augment, bend_goals, draw_augmentation, load_segments,
+                                    resample_by_arc_length, trajectory_rank)
 from hdp_controller.diffusion import TrajectoryDiffusion
 from hdp_controller.low_level import HORIZON, SegmentRequest
 from hdp_controller.pointnet2 import PointNet2Encoder, ball_query, farthest_point_sample
@@ -40,10 +42,11 @@ def segments(episodes, tmp_path_factory):
     return load_segments(episodes, n_points=64, cache_dir=tmp_path_factory.mktemp('cache'), workers=1)
 
 
-def _batch(segs, n=4, seed=0):
-    data = SegmentDataset(segs, augment=True, seed=seed)
+def _batch(segs, n=4, seed=0, goal_sigma=0.0):
+    data = SegmentDataset(segs)
     items = [data[i % len(data)] for i in range(n)]
-    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
+    batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
+    return augment(batch, draw_augmentation(n, torch.Generator().manual_seed(seed), goal_sigma))
 
 
 # --- kinematics ---------------------------------------------------------------------------
@@ -104,15 +107,39 @@ def test_segments_end_at_the_keyframes_the_high_level_uses(episodes, segments):
 
 
 def test_start_end_augmentation_stays_on_the_path(segments):
-    plain = SegmentDataset(segments, augment=False)[0]
-    moved = [SegmentDataset(segments, augment=True, seed=s)[0] for s in range(8)]
-    assert torch.allclose(plain['joints'], torch.from_numpy(segments.joints[0]))
-    assert any(not torch.allclose(m['joints'][0], plain['joints'][0]) for m in moved)
+    item = SegmentDataset(segments)[0]
+    plain = augment({k: v[None] for k, v in item.items()})
+    assert torch.equal(plain['joints'][0], torch.from_numpy(segments.joints[0]))
+    moved = [_batch(segments, 1, seed=s) for s in range(8)]
+    assert any(not torch.allclose(m['joints'][0, 0], plain['joints'][0, 0]) for m in moved)
     for m in moved:
-        assert torch.allclose(m['q'], m['joints'][0]) and torch.allclose(m['goal_pose'], m['poses'][-1])
+        assert torch.allclose(m['q'], m['joints'][:, 0]) and torch.allclose(m['goal_pose'], m['poses'][:, -1])
         # Never starts later than waypoint 5 or ends earlier than HORIZON - 6.
-        gap_start = (m['joints'][0] - plain['joints'][0]).abs().max()
-        assert gap_start <= (plain['joints'][5] - plain['joints'][0]).abs().max() + 1e-5
+        gap_start = (m['joints'][0, 0] - plain['joints'][0, 0]).abs().max()
+        assert gap_start <= (plain['joints'][0, 5] - plain['joints'][0, 0]).abs().max() + 1e-5
+        gap_end = (m['joints'][0, -1] - plain['joints'][0, -1]).abs().max()
+        assert gap_end <= (plain['joints'][0, -1] - plain['joints'][0, -6]).abs().max() + 1e-5
+
+
+def test_goal_augmentation_bends_the_path_to_a_goal_fk_agrees_with(segments):
+    """The start stays, the goal moves, and poses, goal pose and rank are the bent path's."""
+    batch = _batch(segments, 16, seed=3)
+    bends = torch.zeros(16, 7)
+    bends[::2] = 0.05 * torch.randn(8, 7, generator=torch.Generator().manual_seed(0))
+    joints, poses, rank = bend_goals(batch['joints'], batch['poses'], batch['rank'], bends)
+    assert torch.equal(joints[1::2], batch['joints'][1::2]) and torch.equal(poses[1::2], batch['poses'][1::2])
+    assert torch.allclose(joints[::2, 0], batch['joints'][::2, 0])
+    assert torch.allclose(joints[::2, -1], (batch['joints'][::2, -1] + bends[::2]).clamp(
+        torch.tensor(panda.LOWER, dtype=torch.float32), torch.tensor(panda.UPPER, dtype=torch.float32)), atol=1e-6)
+    fk = kinematics.fk_pose(joints[::2, -1])
+    _, angle = kinematics.pose_error(fk, poses[::2, -1])
+    assert torch.allclose(fk[:, :3], poses[::2, -1, :3], atol=1e-5) and angle.max() < 1e-3
+    assert (torch.linalg.norm(poses[::2, -1, :3] - batch['poses'][::2, -1, :3], dim=-1) > 1e-3).all()
+    assert ((rank > 0) & (rank <= 1)).all()
+    drawn = draw_augmentation(1000, torch.Generator().manual_seed(0), goal_sigma=0.05)
+    bent = (drawn['bends'] != 0).any(1).float().mean()
+    assert 0.4 < bent < 0.6 and abs(drawn['bends'][drawn['bends'] != 0].std() - 0.05) < 0.005
+    assert drawn['trims'].min() == 0 and drawn['trims'].max() == 5
 
 
 def test_preprocessing_is_cached(episodes, tmp_path):
@@ -163,9 +190,9 @@ def test_training_reduces_the_loss(segments):
     batch = _batch(segments, 8)
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
+    draws = model.draw(8, torch.Generator().manual_seed(1))     # the same noise and steps each time: a pure fit
     for _ in range(30):
-        torch.manual_seed(1)           # the same noise and steps each time: a pure fit
-        loss, parts = model.loss(batch)
+        loss, parts = model.loss(batch, draws)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -390,6 +417,69 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     bad = subprocess.run([*HDP, 'train', 'low-level', '--data', str(tmp_path), '--out', str(out)],
                          text=True, capture_output=True, timeout=120)
     assert bad.returncode != 0 and 'no successful episodes' in bad.stderr
+
+
+def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path):
+    """DDP over gloo: both ranks end with identical weights (the trainer compares their
+    digests at every save and refuses to go on otherwise), and two processes of 2 samples
+    match one process of the combined 4 to float rounding (gradients averaged in another order)."""
+    config = tmp_path / 'small.yaml'
+    config.write_text('model: {unet_dim: 8, point_features: 16, point_width: 8, n_points: 64, diffusion_steps: 10}\n'
+                      'train: {batch_size: 4, save_every: 1, warmup_steps: 1, goal_augment: 0.05}\n')
+    options = ['train', 'low-level', '--data', str(episodes), '--config', str(config), '--steps', '3',
+               '--cache', str(tmp_path / 'cache'), '--threads', '1']
+    one = subprocess.run([*HDP, *options, '--out', str(tmp_path / 'one.pt')],
+                         text=True, capture_output=True, timeout=300)
+    assert one.returncode == 0, one.stderr
+    env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
+    two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
+                          '-m', 'hdp_msgs_py.cli.main', *options, '--out', str(tmp_path / 'two.pt')],
+                         text=True, capture_output=True, timeout=300, env=env)
+    assert two.returncode == 0, two.stderr[-3000:]
+    single, split = checkpoint.read(tmp_path / 'one.pt'), checkpoint.read(tmp_path / 'two.pt')
+    assert (single['training']['processes'], split['training']['processes']) == (1, 2)
+    assert single['model'].keys() == split['model'].keys()
+    worst = max(float((single['model'][k].float() - split['model'][k].float()).abs().max()) for k in single['model'])
+    assert worst < 1e-4, f'two processes differ from one by {worst}'
+    moved = max(float((single['model'][k].float() - RKDiffuser(RKDConfig(
+        unet_dim=8, point_features=16, point_width=8, n_points=64, diffusion_steps=10)).state_dict()[k].float()
+        ).abs().max()) for k in single['model'] if single['model'][k].is_floating_point())
+    assert moved > 100 * worst       # three steps moved the weights far more than the two runs differ
+    assert (tmp_path / 'one_curves.csv').is_file() and (tmp_path / 'two_curves.csv').is_file()
+
+
+def test_sample_quality_measures_a_perfect_sampler_as_perfect_and_refuses_training_seeds(episodes, segments,
+                                                                                       tmp_path):
+    from hdp_eval.sample_quality import measure, summary
+
+    class Demonstrated:           # "samples" the demonstrations themselves: no goal error, nothing to refine
+        done = 0
+
+        def sample(self, batch, *args):
+            rows = slice(self.done, self.done + len(batch['q']))
+            self.done += len(batch['q'])
+            return {'joints': torch.from_numpy(segments.joints[rows]), 'poses': torch.from_numpy(segments.poses[rows])}
+
+        def parameters(self):
+            yield torch.zeros(1)
+
+    rows = measure(Demonstrated(), segments, 'ddim', 5, 1.0, refine_steps=5, batch_size=3, seed=0)
+    figures = summary(rows)
+    assert len(rows) == len(segments) and figures['within'] == 100.0
+    assert figures['goal_cm'] < 0.01 and figures['goal_deg'] < 0.1 and figures['refine_moves_cm'] < 0.5
+    model = RKDiffuser(SMALL).eval()
+    checkpoint.save(tmp_path / 'other.pt', model, {'training_seeds': {'reach_target': [12]}})
+    checkpoint.save(tmp_path / 'same.pt', model, {'training_seeds': {'reach_target': [11]}})
+    base = [*HDP, 'eval', 'samples', '--data', str(episodes), '--cache', str(tmp_path / 'cache'), '--refine-steps', '2']
+    ran = subprocess.run([*base, '--checkpoint', str(tmp_path / 'other.pt'), '--json', str(tmp_path / 's.json')],
+                         text=True, capture_output=True, timeout=300)
+    assert ran.returncode == 0, ran.stderr
+    assert '| open_drawer |' in ran.stdout and '| reach_target |' in ran.stdout and '| **all** |' in ran.stdout
+    untrained = summary(json.loads((tmp_path / 's.json').read_text())['segments'])
+    assert untrained['goal_cm'] > 1.0          # an untrained joint diffuser misses: the measure can fail
+    refused = subprocess.run([*base, '--checkpoint', str(tmp_path / 'same.pt')], text=True, capture_output=True,
+                             timeout=300)
+    assert refused.returncode != 0 and 'was trained on episodes' in refused.stderr and 'reach_target 11' in refused.stderr
 
 
 # --- policies, trajectories, figures --------------------------------------------------------

@@ -9,15 +9,6 @@ import json
 import yaml
 
 
-def _device(name: str) -> str:
-    import torch
-    if name == 'auto':
-        return 'cuda' if torch.cuda.is_available() else 'cpu'
-    if name == 'cuda' and not torch.cuda.is_available():
-        raise SystemExit('hdp train low-level: --device cuda asked for, but no CUDA device is available')
-    return name
-
-
 def configure_train(parser: argparse.ArgumentParser) -> None:
     parser.description = ('Train RK-Diffuser (pose + joint diffusers, distilled through differentiable '
                           'Panda kinematics) on the successful episodes in DATA. Resumes when OUT.resume exists.')
@@ -27,8 +18,9 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--steps', type=int, help='training steps (overrides the config)')
     parser.add_argument('--batch-size', type=int, help='batch size (overrides the config)')
     parser.add_argument('--seed', type=int, help='seed (overrides the config)')
-    parser.add_argument('--device', default='cpu', choices=('cpu', 'cuda', 'auto'),
-                        help='cpu (default), cuda, or auto: cuda when present')
+    parser.add_argument('--device', default='cpu',
+                        help='cpu (default), cuda, cuda:N, or auto: cuda when present; under torchrun with cuda, '
+                             'each process takes the GPU of its local rank')
     parser.add_argument('--threads', type=int, help='torch CPU threads (default: torch decides)')
     parser.add_argument('--init', help='start from the weights of this checkpoint (fine-tuning: fresh optimiser '
                         'and schedule; the model config must match)')
@@ -39,6 +31,7 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
 def _train(args) -> int:
     import torch
 
+    from .distributed import torch_device
     from .train import TrainConfig, train
     values = {}
     if args.config:
@@ -62,7 +55,7 @@ def _train(args) -> int:
         torch.set_num_threads(args.threads)
     print(json.dumps({'model': dataclasses.asdict(model_config), 'train': dataclasses.asdict(train_config)}))
     try:
-        out = train(args.data, args.out, model_config, train_config, _device(args.device), args.cache,
+        out = train(args.data, args.out, model_config, train_config, torch_device(args.device), args.cache,
                     init=args.init)
     except ValueError as err:
         raise SystemExit(f'hdp train low-level: {err}') from None

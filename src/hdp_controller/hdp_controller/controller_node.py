@@ -35,6 +35,7 @@ class ControllerNode(ros.Node):
         'method': ('rkd', f'low-level method: {" | ".join(METHODS)}'),
         'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser.pt ($HDP_MODELS_DIR)"),
         'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
+        'device': ('cpu', 'where the diffusers sample: cpu | cuda | cuda:N | auto (refinement stays on the CPU)'),
         'segment_timeout_s': (10.0, 's after the trajectory ends before the segment has failed'),
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before a segment fails'),
         'robot_type': ('panda', 'panda | fr3: the joint limits trajectories are refined, checked and timed against'),
@@ -66,8 +67,9 @@ class ControllerNode(ros.Node):
         except ValueError as err:
             raise ros.StartupError(f"parameter 'robot_type': {err}") from None
         try:
-            policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'], limits=limits)
-        except ValueError as err:          # CheckpointError: missing, damaged or not ours
+            policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'], limits=limits,
+                                 device=p['device'])
+        except ValueError as err:          # CheckpointError: missing, damaged or not ours; a device not here
             raise ros.StartupError(f"cannot load the {p['method']} policy: {err}") from None
         prefix = p['joint_prefix']
         self.logic = SegmentController(

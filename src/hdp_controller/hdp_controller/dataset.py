@@ -14,7 +14,10 @@ world-frame points at the segment start, cropped to the workspace.
 Start/end augmentation (paper appendix; the official code ships it off and
 users could not reproduce the paper): each draw starts k ~ U{0..5}
 waypoints late and ends k' ~ U{0..5} early, re-interpolated to HORIZON, so
-the policy tolerates start states and NBPs that are slightly off.
+the policy tolerates start states and NBPs that are slightly off. Kinematic
+goal augmentation (ours, off unless configured) bends half the segments to
+nearby goals. Both are drawn per batch from a generator the training loop
+seeds per step, so a step's batch is the same in one process or split over many.
 
 Preprocessing is cached in one .npz per data directory and settings.
 """
@@ -30,8 +33,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 from tqdm import tqdm
 
+from hdp_motion import panda
 from hdp_motion.kinematics import continuous_quats, fk_pose
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import transform_to_matrix
@@ -153,34 +158,91 @@ def load_segments(data_dir, n_points: int = 1024, cache_dir=None, workers: int =
     return segs
 
 
-def _interpolate(traj: np.ndarray, start: float, end: float) -> np.ndarray:
-    """(HORIZON, D) trajectory -> HORIZON waypoints between fractional indices start..end."""
-    t = np.linspace(start, end, HORIZON)
-    return np.stack([np.interp(t, np.arange(len(traj)), traj[:, j]) for j in range(traj.shape[1])], axis=1)
+def draw_augmentation(batch_size: int, generator: torch.Generator | None = None,
+                      goal_sigma: float = 0.0) -> dict:
+    """Every random number ``augment`` uses for a batch of ``batch_size``:
+    trims (B, 2) waypoints cut at the start and end, k ~ U{0..MAX_AUGMENT};
+    bends (B, 7) rad, N(0, goal_sigma^2) for half the segments, zero for the rest."""
+    trims = torch.randint(0, MAX_AUGMENT + 1, (batch_size, 2), generator=generator)
+    chosen = torch.rand(batch_size, generator=generator) < 0.5
+    bends = goal_sigma * torch.randn(batch_size, 7, generator=generator) * chosen[:, None]
+    return {'trims': trims, 'bends': bends}
+
+
+def augment(batch: dict, draws: dict | None = None) -> dict:
+    """A batch of SegmentDataset items -> a training batch with q, start_pose and goal_pose.
+
+    With ``draws`` (draw_augmentation): each segment starts trims[:, 0] waypoints late and
+    ends trims[:, 1] early, re-interpolated to HORIZON (start/end augmentation), and
+    segments with non-zero bends get their goal moved by kinematic goal augmentation
+    (bend_goals). Without: the segments as recorded.
+    """
+    joints, poses, rank = batch['joints'], batch['poses'], batch['rank']
+    if draws is not None:
+        joints, poses = trim(joints, draws['trims']), trim(poses, draws['trims'])
+        poses = torch.cat([poses[..., :3], nn.functional.normalize(poses[..., 3:], dim=-1)], dim=-1)
+        joints, poses, rank = bend_goals(joints, poses, rank, draws['bends'])
+    return {**batch, 'joints': joints, 'poses': poses, 'rank': rank, 'q': joints[:, 0],
+            'start_pose': poses[:, 0], 'goal_pose': poses[:, -1]}
+
+
+def trim(trajectories: torch.Tensor, trims: torch.Tensor) -> torch.Tensor:
+    """(B, T, D) trajectories, (B, 2) waypoints to cut at each end -> (B, T, D) linearly
+    interpolated between fractional indices trims[:, 0] .. T - 1 - trims[:, 1]."""
+    b, t, d = trajectories.shape
+    first, last = trims[:, :1].to(trajectories), t - 1 - trims[:, 1:].to(trajectories)
+    index = first + torch.linspace(0, 1, t, device=trajectories.device)[None] * (last - first)
+    lower = index.floor().long().clamp(max=t - 2)
+    weight = (index - lower)[..., None]
+
+    def at(i):
+        return torch.gather(trajectories, 1, i[..., None].expand(-1, -1, d))
+    return at(lower) * (1 - weight) + at(lower + 1) * weight
+
+
+def bend_goals(joints: torch.Tensor, poses: torch.Tensor, rank: torch.Tensor,
+               bends: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Kinematic goal augmentation: joints (B, T, 7), poses (B, T, 7), rank (B, 1), bends (B, 7).
+
+    A segment with a non-zero bend dq has its joint path bent by the ramp s * dq
+    (s from 0 at the start to 1 at the goal), then its poses and rank recomputed
+    through FK. The demonstrations show each goal once; this shows the joint
+    diffuser the goal -> final joints map (the Panda's kinematics) in a
+    neighbourhood around every one of them.
+    """
+    bent = (bends != 0).any(-1)
+    if not bent.any():
+        return joints, poses, rank
+    ramp = torch.linspace(0, 1, joints.shape[1], device=joints.device)[None, :, None]
+    moved = (joints + ramp * bends[:, None]).clamp(_LOWER.to(joints), _UPPER.to(joints))
+    fk = fk_pose(moved)
+    fk = torch.cat([fk[..., :3], continuous_quats(fk[..., 3:])], dim=-1)
+    travelled = torch.linalg.norm(torch.diff(fk[..., :3], dim=1), dim=-1).sum(1)
+    straight = torch.linalg.norm(fk[:, -1, :3] - fk[:, 0, :3], dim=-1)
+    new_rank = (straight / travelled.clamp(min=1e-6)).clamp(1e-3, 1)[:, None]
+    pick = bent[:, None, None]
+    return (torch.where(pick, moved, joints), torch.where(pick, fk, poses),
+            torch.where(bent[:, None], new_rank, rank))
+
+
+_LOWER = torch.tensor(panda.LOWER, dtype=torch.float32)
+_UPPER = torch.tensor(panda.UPPER, dtype=torch.float32)
 
 
 class SegmentDataset(torch.utils.data.Dataset):
-    """Training samples: trajectories and conditions as float32 tensors (unnormalised).
+    """Segments as recorded, float32 tensors (unnormalised); ``augment`` turns a batch of
+    them into training samples.
 
-    Per item: joints, poses (HORIZON, 7); q (7,), qd (7,), gripper (2,),
-    start_pose, goal_pose (7,), rank (1,), points (N, 3).
+    Per item: joints, poses (HORIZON, 7); qd (7,), gripper (2,), rank (1,), points (N, 3).
     """
 
-    def __init__(self, segs: Segments, augment: bool = True, seed: int = 0):
-        self.segs, self.augment = segs, augment
-        self.rng = np.random.default_rng(seed)
+    def __init__(self, segs: Segments):
+        self.segs = segs
 
     def __len__(self) -> int:
         return len(self.segs)
 
     def __getitem__(self, i: int) -> dict:
-        joints, poses = self.segs.joints[i], self.segs.poses[i]
-        if self.augment:
-            k_start, k_end = self.rng.integers(0, MAX_AUGMENT + 1, size=2)
-            joints = _interpolate(joints, k_start, HORIZON - 1 - k_end)
-            poses = _interpolate(poses, k_start, HORIZON - 1 - k_end)
-            poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
-        item = dict(joints=joints, poses=poses, q=joints[0], qd=self.segs.qd0[i], gripper=self.segs.gripper[i],
-                    start_pose=poses[0], goal_pose=poses[-1], rank=self.segs.rank[i:i + 1],
-                    points=self.segs.points[i])
+        item = dict(joints=self.segs.joints[i], poses=self.segs.poses[i], qd=self.segs.qd0[i],
+                    gripper=self.segs.gripper[i], rank=self.segs.rank[i:i + 1], points=self.segs.points[i])
         return {k: torch.as_tensor(np.asarray(v, dtype=np.float32)) for k, v in item.items()}

@@ -39,27 +39,30 @@ def inpaint(x: torch.Tensor, known: dict[int, torch.Tensor]) -> torch.Tensor:
 
 
 class TrajectoryDiffusion(nn.Module):
-    """Wraps a denoiser ``net(x_t (B, T, D), t (B,), cond (B, C)) -> x0 (B, T, D)``."""
+    """Wraps a denoiser ``net(x_t (B, T, D), t (B,), cond (B, C), local (B, T, L) | None) -> x0 (B, T, D)``."""
 
     def __init__(self, net: nn.Module, horizon: int, dim: int, train_steps: int = 100):
         super().__init__()
         self.net, self.horizon, self.dim, self.train_steps = net, horizon, dim, train_steps
         self.noise_schedule = make_scheduler('ddpm', train_steps)
 
-    def predict_x0(self, x_t, t, cond, known):
-        return inpaint(self.net(inpaint(x_t, known), t, cond), known)
+    def predict_x0(self, x_t, t, cond, known, local=None):
+        return inpaint(self.net(inpaint(x_t, known), t, cond, local), known)
 
-    def loss(self, x0: torch.Tensor, cond: torch.Tensor, known: dict) -> tuple[torch.Tensor, torch.Tensor]:
-        """MSE of the x0 prediction from a random step; returns (loss, predicted x0 (B, T, D))."""
-        t = torch.randint(0, self.train_steps, (x0.shape[0],), device=x0.device)
-        x_t = self.noise_schedule.add_noise(x0, torch.randn_like(x0), t)
-        x0_hat = self.predict_x0(x_t, t, cond, known)
+    def loss(self, x0: torch.Tensor, cond: torch.Tensor, known: dict, local: torch.Tensor | None = None,
+             t: torch.Tensor | None = None, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """MSE of the x0 prediction from step t (B,) after adding noise (B, T, D) (both drawn
+        when not given); returns (loss, predicted x0 (B, T, D))."""
+        t = torch.randint(0, self.train_steps, (x0.shape[0],), device=x0.device) if t is None else t
+        noise = torch.randn_like(x0) if noise is None else noise
+        x_t = self.noise_schedule.add_noise(x0, noise, t)
+        x0_hat = self.predict_x0(x_t, t, cond, known, local)
         return nn.functional.mse_loss(x0_hat, x0), x0_hat
 
     @torch.no_grad()
     def sample(self, cond: torch.Tensor, known: dict, null_cond: torch.Tensor | None = None,
                guidance: float = 1.0, sampler: str = 'ddpm', steps: int | None = None,
-               generator: torch.Generator | None = None) -> torch.Tensor:
+               generator: torch.Generator | None = None, local: torch.Tensor | None = None) -> torch.Tensor:
         """(B, T, D) trajectories from Gaussian noise.
 
         With ``null_cond`` (the conditions with the dropped ones nulled, as in
@@ -68,16 +71,18 @@ class TrajectoryDiffusion(nn.Module):
         scheduler = make_scheduler(sampler, self.train_steps)
         scheduler.set_timesteps(steps or self.train_steps)
         b = cond.shape[0]
-        x = torch.randn(b, self.horizon, self.dim, generator=generator, device=cond.device)
+        # Drawn on the CPU (the generator's device) so a seed gives the same noise on any device.
+        x = torch.randn(b, self.horizon, self.dim, generator=generator).to(cond.device)
         guided = null_cond is not None and guidance != 1.0
         for t in scheduler.timesteps:
             steps_t = torch.full((b,), int(t), device=cond.device)
             if guided:
                 both = self.predict_x0(torch.cat([x, x]), torch.cat([steps_t, steps_t]),
-                                       torch.cat([cond, null_cond]), {i: torch.cat([v, v]) for i, v in known.items()})
+                                       torch.cat([cond, null_cond]), {i: torch.cat([v, v]) for i, v in known.items()},
+                                       None if local is None else torch.cat([local, local]))
                 x0_cond, x0_null = both.chunk(2)
                 x0 = x0_null + guidance * (x0_cond - x0_null)
             else:
-                x0 = self.predict_x0(x, steps_t, cond, known)
+                x0 = self.predict_x0(x, steps_t, cond, known, local)
             x = scheduler.step(x0, t, x, generator=generator).prev_sample
         return inpaint(x, known)

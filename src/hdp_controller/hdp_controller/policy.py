@@ -18,7 +18,7 @@ import torch
 from hdp_motion import panda
 from hdp_msgs_py import checkpoints
 
-from . import checkpoint
+from . import checkpoint, distributed
 from .low_level import PlanResult, Scene, SegmentRequest
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses
 from .rk_diffuser import RKDiffuser, as_batch
@@ -59,15 +59,18 @@ class _Sampling:
     policy built with seed s draws from seed s + n, so runs repeat; picklable for workers)."""
 
     def __init__(self, model: RKDiffuser, sampler: str = 'ddpm', steps: int | None = None, seed: int = 0,
-                 training_seeds: dict | None = None, guidance: float | None = None):
-        self.model, self.sampler, self.steps, self.guidance = model, sampler, steps, guidance
-        self.seed, self.calls = seed, 0
+                 training_seeds: dict | None = None, guidance: float | None = None, device: str = 'cpu'):
+        self.model, self.sampler, self.steps, self.guidance = model.to(device), sampler, steps, guidance
+        self.seed, self.calls, self.device = seed, 0, device
         self.training_seeds = training_seeds
 
     def _sample(self, request: SegmentRequest, which) -> dict:
+        """The samples on the CPU, wherever the model runs (refinement and IK run there)."""
         generator = torch.Generator().manual_seed(self.seed + self.calls)
         self.calls += 1
-        return self.model.sample(conditions(request), self.sampler, self.steps, self.guidance, generator, which)
+        batch = {k: v.to(self.device) for k, v in conditions(request).items()}
+        out = self.model.sample(batch, self.sampler, self.steps, self.guidance, generator, which)
+        return {k: v.cpu() for k, v in out.items()}
 
 
 class PoseSampler(_Sampling):
@@ -110,9 +113,10 @@ class JointDiffusionPolicy(_Sampling):
 
 def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps: int | None = None,
                 seed: int = 0, guidance: float | None = None, refine_steps: int = REFINE_STEPS,
-                limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']):
+                limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'], device: str = 'cpu'):
     """A LowLevelPolicy by name; learned ones from ``checkpoint_path`` (default: the released one).
-    ``limits``: the robot's joint limits, which rkd's refinement keeps to.
+    ``limits``: the robot's joint limits, which rkd's refinement keeps to. ``device``: where the
+    diffusers sample (distributed.torch_device checks it); refinement stays on the CPU.
 
     sampler 'ddpm' runs all 100 steps with the checkpoint's guidance; 'ddim' defaults to
     FAST_STEPS with FAST_GUIDANCE. ``steps`` and ``guidance`` override those defaults.
@@ -128,7 +132,7 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
     if guidance is None and fast:
         guidance = FAST_GUIDANCE
     common = dict(sampler=sampler, steps=steps or (FAST_STEPS if fast else None), seed=seed,
-                  guidance=guidance, training_seeds=payload.get('training_seeds'))
+                  guidance=guidance, training_seeds=payload.get('training_seeds'), device=distributed.torch_device(device))
     if method == 'rkd':
         return RKDPolicy(model, refine_steps=refine_steps, limits=limits, **common)
     if method == 'joint':

@@ -44,6 +44,9 @@ _UPPER = torch.tensor(panda.UPPER, dtype=torch.float32)
 _VELOCITY = torch.tensor(panda.VELOCITY_LIMITS, dtype=torch.float32)
 
 
+ROTATION_INPUTS = ('quaternion', 'matrix')
+
+
 @dataclasses.dataclass
 class RKDConfig:
     unet_dim: int = 32
@@ -55,6 +58,15 @@ class RKDConfig:
     cond_dropout: float = 0.1
     guidance: float = 1.2
     loss_weights: tuple = (1.0, 1.0, 1.0)      # b1 pose, b2 joint, b3 joint->pose
+    # How the joint diffuser is told its goal (model card, "Why the joint diffuser
+    # missed its goal"); the defaults rebuild the checkpoints released before them.
+    rotation_input: str = 'quaternion'         # start/goal orientation for the encoder: quaternion | matrix
+    joint_reference: bool = False              # the straight line start -> goal as the joint U-Net's per-waypoint input
+    goal_loss_weight: float = 0.0              # b4: FK(the predicted last joint waypoint) against the goal pose
+
+    def __post_init__(self):
+        if self.rotation_input not in ROTATION_INPUTS:
+            raise ValueError(f'rotation_input {self.rotation_input!r}: choose from {", ".join(ROTATION_INPUTS)}')
 
     @classmethod
     def from_dict(cls, values: dict) -> RKDConfig:
@@ -78,6 +90,13 @@ def unnormalize_positions(xyz: torch.Tensor) -> torch.Tensor:
 
 def normalize_poses(pose: torch.Tensor) -> torch.Tensor:
     return torch.cat([normalize_positions(pose[..., :3]), pose[..., 3:]], dim=-1)
+
+
+def pose_features(pose: torch.Tensor) -> torch.Tensor:
+    """(..., 7) poses -> (..., 9): normalised position and the rotation matrix's first two
+    columns, a continuous encoding without the quaternion's double cover (Zhou et al. 2019)."""
+    columns = quat_to_matrix(pose[..., 3:])[..., :2]
+    return torch.cat([normalize_positions(pose[..., :3]), columns.flatten(-2)], dim=-1)
 
 
 # The pose diffuser works on the deviation from the straight line start -> goal
@@ -135,11 +154,12 @@ def mlp(c_in: int, c_out: int) -> nn.Sequential:
 class ConditionEncoder(nn.Module):
     """Batch of conditions -> (B, out_dim) vector; ``drop`` (B,) bool nulls the scene context."""
 
-    STATE_DIM = 7 + 7 + 7 + 7 + 2     # start pose, goal pose, q, qd, gripper (width, open)
-
     def __init__(self, config: RKDConfig):
         super().__init__()
-        self.state = mlp(self.STATE_DIM, 128)
+        self.encode_pose = pose_features if config.rotation_input == 'matrix' else normalize_poses
+        pose_dim = 9 if config.rotation_input == 'matrix' else 7
+        # start pose, goal pose, q, qd, gripper (width, open)
+        self.state = mlp(2 * pose_dim + 7 + 7 + 2, 128)
         self.rank = mlp(1, 32)
         self.points = PointNet2Encoder(config.point_features, config.point_width)
         self.null_rank = nn.Parameter(torch.zeros(32))
@@ -147,13 +167,20 @@ class ConditionEncoder(nn.Module):
         self.out_dim = 128 + 32 + config.point_features
 
     def forward(self, batch: dict, drop: torch.Tensor) -> torch.Tensor:
-        state = torch.cat([normalize_poses(batch['start_pose']), normalize_poses(batch['goal_pose']),
+        state = torch.cat([self.encode_pose(batch['start_pose']), self.encode_pose(batch['goal_pose']),
                            normalize_joints(batch['q']), batch['qd'] / _VELOCITY.to(batch['qd']),
                            batch['gripper'] * torch.tensor([1 / panda.GRIPPER_OPEN_WIDTH, 1.0]).to(batch['q'])],
                           dim=-1)
         rank = torch.where(drop[:, None], self.null_rank, self.rank(batch['rank']))
         points = torch.where(drop[:, None], self.null_points, self.points(normalize_positions(batch['points'])))
         return torch.cat([self.state(state), rank, points], dim=-1)
+
+
+def straight_line_reference(start_pose: torch.Tensor, goal_pose: torch.Tensor) -> torch.Tensor:
+    """(B, 7) start and goal -> (B, HORIZON, 9) pose_features of the straight line between them:
+    at every waypoint the joint U-Net reads where the hand would be on a straight move,
+    at the last one the goal itself."""
+    return pose_features(_straight_line(start_pose, goal_pose, HORIZON))
 
 
 def fk_pose_loss(q: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
@@ -173,24 +200,55 @@ class RKDiffuser(nn.Module):
         self.config = config
         self.encoder = ConditionEncoder(config)
         self.pose = self._diffuser(config)
-        self.joint = self._diffuser(config)
+        self.joint = self._diffuser(config, local_dim=9 if config.joint_reference else 0)
 
-    def _diffuser(self, config: RKDConfig) -> TrajectoryDiffusion:
-        net = TemporalUnet(7, self.encoder.out_dim, config.unet_dim, config.dim_mults)
+    def _diffuser(self, config: RKDConfig, local_dim: int = 0) -> TrajectoryDiffusion:
+        net = TemporalUnet(7, self.encoder.out_dim, config.unet_dim, config.dim_mults, local_dim)
         return TrajectoryDiffusion(net, HORIZON, 7, config.diffusion_steps)
 
-    def loss(self, batch: dict) -> tuple[torch.Tensor, dict]:
-        """batch: see dataset.SegmentDataset (unnormalised). Returns (total, {name: value})."""
-        b = batch['q'].shape[0]
-        cond = self.encoder(batch, torch.rand(b, device=batch['q'].device) < self.config.cond_dropout)
+    def _joint_reference(self, batch: dict) -> torch.Tensor | None:
+        if not self.config.joint_reference:
+            return None
+        return straight_line_reference(batch['start_pose'], batch['goal_pose'])
+
+    def draw(self, batch_size: int, generator: torch.Generator | None = None) -> dict:
+        """Every random number one ``loss`` uses for ``batch_size`` samples (on the CPU):
+        drop (B,) the scene context nulled; pose_t, joint_t (B,) diffusion steps;
+        pose_noise, joint_noise (B, HORIZON, 7)."""
+        steps, shape = self.config.diffusion_steps, (batch_size, HORIZON, 7)
+        return {'drop': torch.rand(batch_size, generator=generator) < self.config.cond_dropout,
+                'pose_t': torch.randint(0, steps, (batch_size,), generator=generator),
+                'pose_noise': torch.randn(shape, generator=generator),
+                'joint_t': torch.randint(0, steps, (batch_size,), generator=generator),
+                'joint_noise': torch.randn(shape, generator=generator)}
+
+    def forward(self, batch: dict, draws: dict | None = None) -> tuple[torch.Tensor, dict]:
+        """The training loss (DistributedDataParallel synchronises gradients through forward)."""
+        return self.loss(batch, draws)
+
+    def loss(self, batch: dict, draws: dict | None = None) -> tuple[torch.Tensor, dict]:
+        """batch: a training batch (dataset.augment; unnormalised); draws: self.draw's, drawn
+        here when not given. Returns (total, {name: value})."""
+        device = batch['q'].device
+        draws = {k: v.to(device) for k, v in (draws or self.draw(batch['q'].shape[0])).items()}
+        cond = self.encoder(batch, draws['drop'])
         deviation = pose_deviation(batch['poses'], batch['start_pose'], batch['goal_pose'])
         motion = joint_motion(batch['joints'], batch['q'])
-        l_pose, _ = self.pose.loss(deviation, cond, {0: deviation[:, 0], -1: deviation[:, -1]})
-        l_joint, motion_hat = self.joint.loss(motion, cond, {0: motion[:, 0]})
-        l_fk = fk_pose_loss(joints_from_motion(motion_hat, batch['q']), batch['poses'])
+        l_pose, _ = self.pose.loss(deviation, cond, {0: deviation[:, 0], -1: deviation[:, -1]},
+                                   t=draws['pose_t'], noise=draws['pose_noise'])
+        l_joint, motion_hat = self.joint.loss(motion, cond, {0: motion[:, 0]}, self._joint_reference(batch),
+                                              t=draws['joint_t'], noise=draws['joint_noise'])
+        joints_hat = joints_from_motion(motion_hat, batch['q'])
+        l_fk = fk_pose_loss(joints_hat, batch['poses'])
         b1, b2, b3 = self.config.loss_weights
         total = b1 * l_pose + b2 * l_joint + b3 * l_fk
-        return total, {'pose': l_pose.item(), 'joint': l_joint.item(), 'joint_to_pose': l_fk.item()}
+        parts = {'pose': l_pose.item(), 'joint': l_joint.item(), 'joint_to_pose': l_fk.item()}
+        if self.config.goal_loss_weight:
+            # The FK term above weighs the goal as 1 of 64 waypoints; the goal is what the segment is for.
+            l_goal = fk_pose_loss(joints_hat[:, -1], batch['goal_pose'])
+            total = total + self.config.goal_loss_weight * l_goal
+            parts['goal'] = l_goal.item()
+        return total, parts
 
     @torch.no_grad()
     def sample(self, batch: dict, sampler: str = 'ddpm', steps: int | None = None, guidance: float | None = None,
@@ -198,8 +256,9 @@ class RKDiffuser(nn.Module):
         """Conditions (B, ...) -> {'poses': (B, T, 7) xyz + quat xyzw, 'joints': (B, T, 7) rad}."""
         guidance = self.config.guidance if guidance is None else guidance
         b = batch['q'].shape[0]
-        cond = self.encoder(batch, torch.zeros(b, dtype=torch.bool))
-        null = self.encoder(batch, torch.ones(b, dtype=torch.bool)) if guidance != 1.0 else None
+        device = batch['q'].device
+        cond = self.encoder(batch, torch.zeros(b, dtype=torch.bool, device=device))
+        null = self.encoder(batch, torch.ones(b, dtype=torch.bool, device=device)) if guidance != 1.0 else None
         out = {}
         if 'pose' in which:
             zero = torch.zeros_like(batch['start_pose'])
@@ -207,9 +266,10 @@ class RKDiffuser(nn.Module):
             out['poses'] = poses_from_deviation(deviation, batch['start_pose'], batch['goal_pose'])
         if 'joint' in which:
             known = {0: torch.zeros_like(batch['q'])}
-            joints = joints_from_motion(self.joint.sample(cond, known, null, guidance, sampler, steps, generator),
-                                        batch['q'])
-            out['joints'] = torch.maximum(torch.minimum(joints, _UPPER), _LOWER)
+            motion = self.joint.sample(cond, known, null, guidance, sampler, steps, generator,
+                                       self._joint_reference(batch))
+            joints = joints_from_motion(motion, batch['q'])
+            out['joints'] = torch.maximum(torch.minimum(joints, _UPPER.to(joints)), _LOWER.to(joints))
         return out
 
 

@@ -1,14 +1,23 @@
-"""Training loop for RK-Diffuser: seeded, resumable, CPU by default.
+"""Training loop for RK-Diffuser: seeded, resumable, CPU by default, one process or many.
 
 Writes ``OUT`` (the EMA weights + config + provenance: what inference and the
-release need), ``OUT.resume`` (raw weights, optimiser, schedule and RNG state) and
-the training curves (``<OUT stem>_curves.csv``: losses and learning rate). Starting again with the same OUT, data and config
-continues from ``OUT.resume``; a different config refuses to mix.
+release need), ``OUT.resume`` (raw weights, optimiser and schedule) and the
+training curves (``<OUT stem>_curves.csv``: losses and learning rate).
+Starting again with the same OUT, data and config continues from
+``OUT.resume``; a different config refuses to mix.
+
+Launched by ``torchrun``, it trains with DistributedDataParallel (gloo on
+the CPU, NCCL on CUDA; several machines through torchrun's rendezvous).
+Every step's global batch and all its random numbers come from a generator
+seeded by (seed, step) on every rank, and rank r takes rows r, r + N, ...:
+N processes compute the step one process would, split N ways, so a run
+does not depend on how many processes ran it, and resumes without RNG state.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import time
 from pathlib import Path
 
@@ -22,8 +31,8 @@ from hdp_msgs_py import checkpoints
 from hdp_msgs_py.curves import CurveLog, curves_path
 from hdp_msgs_py.episodes import union_of_seeds
 
-from . import checkpoint
-from .dataset import SegmentDataset, load_segments
+from . import checkpoint, distributed
+from .dataset import SegmentDataset, augment, draw_augmentation, load_segments
 from .rk_diffuser import RKDConfig, RKDiffuser, parameter_count
 
 
@@ -40,15 +49,41 @@ class TrainConfig:
     ema_decay: float = 0.995
     save_every: int = 500
     seed: int = 0
+    goal_augment: float = 0.0      # rad: dataset.perturb_goals' sigma (0: off, as the first releases)
 
 
-def _batches(dataset, batch_size: int, seed: int, device: str):
-    generator = torch.Generator().manual_seed(seed)
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=True, drop_last=True,
-                                         generator=generator)
-    while True:
-        for batch in loader:
-            yield {k: v.to(device) for k, v in batch.items()}
+def batch_rows(n: int, batch_size: int, seed: int, step: int) -> torch.Tensor:
+    """The dataset rows of global batch ``step``: epochs of permutations seeded by (seed, epoch),
+    the last incomplete batch of each dropped."""
+    per_epoch = n // batch_size
+    if per_epoch == 0:
+        raise ValueError(f'{n} segments are fewer than one batch of {batch_size}')
+    epoch, index = divmod(step, per_epoch)
+    order = torch.randperm(n, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
+    return order[index * batch_size:(index + 1) * batch_size]
+
+
+def step_batch(dataset, model: RKDiffuser, train_config: TrainConfig, step: int, rank: int = 0,
+               world: int = 1) -> tuple[dict, dict]:
+    """(batch, draws) of ``step`` for process ``rank`` of ``world``: rows rank, rank + world, ...
+    of the global batch, every random number drawn for the whole batch, then sliced."""
+    generator = torch.Generator().manual_seed(train_config.seed * 1_000_003 + step)
+    size = train_config.batch_size
+    draws = model.draw(size, generator)
+    augmentation = draw_augmentation(size, generator, train_config.goal_augment)
+    mine = batch_rows(len(dataset), size, train_config.seed, step)[rank::world]
+    items = [dataset[int(i)] for i in mine]
+    batch = {k: torch.stack([item[k] for item in items]) for k in items[0]}
+    batch = augment(batch, {k: v[rank::world] for k, v in augmentation.items()})
+    return batch, {k: v[rank::world] for k, v in draws.items()}
+
+
+def weights_digest(model: torch.nn.Module) -> str:
+    """sha256 of every parameter's bytes: equal on every rank, or the ranks have diverged."""
+    digest = hashlib.sha256()
+    for tensor in model.state_dict().values():
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
 
 
 def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, device: str = 'cpu',
@@ -57,7 +92,12 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     run (fine-tuning with a fresh optimiser and schedule); its config must match."""
     out = Path(out)
     resume_path = out.with_name(out.name + '.resume')
-    torch.manual_seed(train_config.seed)
+    rank, world, device = distributed.start(device)
+    if rank:
+        log = _quiet                  # one process reports
+    if train_config.batch_size % world:
+        raise ValueError(f'batch size {train_config.batch_size} does not split over {world} processes')
+    torch.manual_seed(train_config.seed)        # the initial weights: the same on every rank
     # Tiny gradients in the Mish/GELU backward turn denormal after warm-up and
     # made CPU steps ~15x slower; flushing them to zero costs no accuracy.
     torch.set_flush_denormal(True)
@@ -66,14 +106,14 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     all_segments = load_segments(data_dir, model_config.n_points, cache_dir)
     segs = all_segments.moving()
     log(f'{len(all_segments) - len(segs)} of {len(all_segments)} segments dropped: the arm does not move in them')
-    dataset = SegmentDataset(segs, augment=True, seed=train_config.seed)
+    dataset = SegmentDataset(segs)
     model = RKDiffuser(model_config).to(device)
     init_info = _load_init(model, model_config, init) if init else None
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(train_config.ema_decay))
     optimizer = torch.optim.AdamW(model.parameters(), lr=train_config.lr, weight_decay=train_config.weight_decay)
     schedule = get_cosine_schedule_with_warmup(optimizer, train_config.warmup_steps, train_config.steps)
     step, elapsed = 0, 0.0
-    if state is not None:                               # on the CPU: the RNG state must stay there
+    if state is not None:
         saved = (state['model_config'], state['train_config'], state.get('init'))
         wanted = (dataclasses.asdict(model_config), dataclasses.asdict(train_config), init_info)
         if any(_plain(a) != _plain(b) for a, b in zip(saved, wanted)):
@@ -84,22 +124,24 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
             ema.load_state_dict(state['ema'])
             optimizer.load_state_dict(state['optimizer'])
             schedule.load_state_dict(state['schedule'])
-            torch.set_rng_state(state['torch_rng'])
         except (KeyError, TypeError, ValueError, RuntimeError) as err:
             raise checkpoint.CheckpointError(f'{resume_path}: a damaged training state '
                                              f'({type(err).__name__} restoring it)') from None
         step, elapsed = state['step'], state['elapsed_s']
         log(f'resuming from {resume_path} at step {step}')
     log(f'{len(segs)} segments from {len(np.unique(np.char.add(segs.task, segs.seed.astype(str))))} episodes; '
-        f'{parameter_count(model) / 1e6:.2f} M parameters')
-    batches = _batches(dataset, train_config.batch_size, train_config.seed + step, device)
-    curves = CurveLog(curves_path(out), resume_step=step)
+        f'{parameter_count(model) / 1e6:.2f} M parameters' + (f'; process {rank} of {world}' if world > 1 else ''))
+    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    lead = rank == 0                  # the one process that logs and writes
+    curves = CurveLog(curves_path(out), resume_step=step) if lead else None
     model.train()
     started = time.monotonic() - elapsed
     losses = []
-    with tqdm(total=train_config.steps, initial=step, desc='training RK-Diffuser', unit='step') as bar:
+    with tqdm(total=train_config.steps, initial=step, desc='training RK-Diffuser', unit='step',
+              disable=not lead) as bar:
         while step < train_config.steps:
-            loss, parts = model.loss(next(batches))
+            batch, draws = step_batch(dataset, model, train_config, step, rank, world)
+            loss, parts = net({k: v.to(device) for k, v in batch.items()}, draws)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -110,14 +152,23 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
             losses.append(parts)
             bar.update(1)
             bar.set_postfix({k: f'{np.mean([p[k] for p in losses[-50:]]):.4f}' for k in parts})
-            if step % CURVE_EVERY == 0 or step == train_config.steps:
+            if lead and (step % CURVE_EVERY == 0 or step == train_config.steps):
                 curves.add(step, lr=schedule.get_last_lr()[0],
                            **{k: float(np.mean([p[k] for p in losses[-CURVE_EVERY:]])) for k in parts})
             if step % train_config.save_every == 0 or step == train_config.steps:
+                digests = distributed.gather(weights_digest(model), world)
+                if len(set(digests)) > 1:
+                    raise RuntimeError(f'the {world} processes hold different weights at step {step}')
                 elapsed = time.monotonic() - started
-                _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config,
-                      train_config, segs, data_dir, losses[-50:], init_info)
+                if lead:
+                    _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config,
+                          train_config, segs, data_dir, losses[-50:], init_info, digests)
+    distributed.stop(world)
     return out
+
+
+def _quiet(*_args, **_kwargs) -> None:
+    pass
 
 
 def _load_init(model, model_config: RKDConfig, init) -> dict:
@@ -142,17 +193,18 @@ def _plain(value):
 
 
 def _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config, train_config,
-          segs, data_dir, recent, init_info):
+          segs, data_dir, recent, init_info, digests):
     ema_model = ema.module
     ema_model.config = model_config
     checkpoint.save(out, ema_model, {
         'training': {'step': step, 'steps': train_config.steps, 'wall_time_s': elapsed,
                      'train_config': dataclasses.asdict(train_config), 'data': str(data_dir),
-                     'segments': len(segs), 'init': init_info,
+                     'segments': len(segs), 'init': init_info, 'processes': len(digests),
+                     'weights_sha256': digests[0],
                      'final_losses': {k: float(np.mean([r[k] for r in recent])) for k in recent[0]}},
         'training_seeds': union_of_seeds(segs.training_seeds(), (init_info or {}).get('training_seeds'))})
     state = {'step': step, 'elapsed_s': elapsed, 'raw_model': model.state_dict(), 'ema': ema.state_dict(),
              'optimizer': optimizer.state_dict(), 'schedule': schedule.state_dict(),
-             'torch_rng': torch.get_rng_state(), 'model_config': dataclasses.asdict(model_config),
+             'model_config': dataclasses.asdict(model_config),
              'train_config': dataclasses.asdict(train_config), 'init': init_info}
     checkpoint.save_resume(resume_path, state)

@@ -46,14 +46,16 @@ class ResidualTemporalBlock(nn.Module):
 
 
 class TemporalUnet(nn.Module):
-    """x (B, T, D) noisy trajectory, t (B,) step, cond (B, C) -> (B, T, D) prediction.
+    """x (B, T, D) noisy trajectory, t (B,) step, cond (B, C), local (B, T, L) or None -> (B, T, D).
 
+    ``local``: per-waypoint conditions (``local_dim`` channels) read beside x, where the
+    global ``cond`` only shifts every waypoint's features alike.
     T must be divisible by 2 ** (len(dim_mults) - 1).
     """
 
-    def __init__(self, transition_dim: int, cond_dim: int, dim: int = 32, dim_mults=(1, 2, 4)):
+    def __init__(self, transition_dim: int, cond_dim: int, dim: int = 32, dim_mults=(1, 2, 4), local_dim: int = 0):
         super().__init__()
-        dims = [transition_dim] + [dim * m for m in dim_mults]
+        dims = [transition_dim + local_dim] + [dim * m for m in dim_mults]
         emb_dim = dim * 4
         self.time_mlp = nn.Sequential(SinusoidalPosEmb(dim), nn.Linear(dim, emb_dim), nn.Mish(),
                                       nn.Linear(emb_dim, emb_dim))
@@ -73,9 +75,10 @@ class TemporalUnet(nn.Module):
                 nn.ConvTranspose1d(c_in, c_in, 4, stride=2, padding=1)]))
         self.final = nn.Sequential(Conv1dBlock(dim, dim), nn.Conv1d(dim, transition_dim, 1))
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
+                local: torch.Tensor | None = None) -> torch.Tensor:
         emb = self.time_mlp(t) + self.cond_mlp(cond)
-        h = x.transpose(1, 2)
+        h = (x if local is None else torch.cat([x, local], dim=-1)).transpose(1, 2)
         skips = []
         for block1, block2, down in self.downs:
             h = block2(block1(h, emb), emb)

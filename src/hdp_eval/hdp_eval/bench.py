@@ -41,6 +41,7 @@ def configure(parser) -> None:
     parser.add_argument('--seed-start', type=int, default=3000, help='first evaluation seed (default 3000)')
     parser.add_argument('--fast-steps', type=int, help='DDIM steps (default: policy.FAST_STEPS)')
     parser.add_argument('--threads', type=int, default=2, help='torch CPU threads (default 2)')
+    parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     parser.add_argument('--json', action='store_true', help='print the figures as JSON instead of a table')
     parser.set_defaults(func=run)
 
@@ -59,15 +60,20 @@ def run(args) -> int:
         raise SystemExit('--episodes and --threads must be >= 1')
     torch.set_num_threads(args.threads)
     fast_steps = args.fast_steps or FAST_STEPS
-    methods = {'rkd_ddpm_100': ToJointTrajectory(load_policy('rkd', args.checkpoint, 'ddpm'), 'rkd_ddpm_100'),
-               f'rkd_ddim_{fast_steps}': ToJointTrajectory(
-                   load_policy('rkd', args.checkpoint, 'ddim', steps=fast_steps), f'rkd_ddim_{fast_steps}')}
+    try:
+        methods = {'rkd_ddpm_100': ToJointTrajectory(load_policy('rkd', args.checkpoint, 'ddpm', device=args.device),
+                                                     'rkd_ddpm_100'),
+                   f'rkd_ddim_{fast_steps}': ToJointTrajectory(
+                       load_policy('rkd', args.checkpoint, 'ddim', steps=fast_steps, device=args.device),
+                       f'rkd_ddim_{fast_steps}')}
+    except ValueError as err:
+        raise SystemExit(f'hdp bench controller: {err}') from None
     started = time.monotonic()
     try:
         results = evaluate(methods, tasks, args.episodes, args.seed_start, workers=1)
     except ValueError as err:
         raise SystemExit(f'hdp bench controller: {err}') from None
-    figures = {'threads': args.threads, 'tasks': tasks, 'seeds': results['seeds'], 'methods': {}}
+    figures = {'threads': args.threads, 'device': args.device, 'tasks': tasks, 'seeds': results['seeds'], 'methods': {}}
     for name, per_task in results['methods'].items():
         latencies = [t for task in per_task.values() for r in task['records'] for t in r['plan_times']]
         figures['methods'][name] = {

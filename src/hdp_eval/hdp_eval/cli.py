@@ -30,7 +30,9 @@ def configure(parser) -> None:
     parser.add_argument('--refine-steps', type=int, default=50,
                         help="rkd's Gauss-Newton refinement steps (default 50)")
     parser.add_argument('--json', type=Path, help='also write every episode record here')
-    parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1)')
+    parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1); under torchrun, '
+                        'per rank: the ranks share the episodes and rank 0 prints and writes the result')
+    parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     parser.set_defaults(func=run)
 
 
@@ -51,6 +53,9 @@ def _names(text: str, known, what: str) -> list[str]:
 
 
 def run(args) -> int:
+    import torch
+
+    from hdp_controller import distributed
     from hdp_controller.policy import load_policy
 
     from .low_level_eval import evaluate, markdown_table
@@ -62,14 +67,18 @@ def run(args) -> int:
     if (args.steps is not None and args.steps < 1) or args.refine_steps < 1:
         raise SystemExit('--steps and --refine-steps must be >= 1')
     sampling = dict(steps=args.steps, guidance=args.guidance, refine_steps=args.refine_steps)
-    methods = {name: load_policy(name, args.checkpoint, args.sampler, **sampling)
-               for name in _names(args.methods, METHODS, 'method')}
+    names = _names(args.methods, METHODS, 'method')
     start = time.monotonic()
     try:
+        device = distributed.start(distributed.torch_device(args.device))[2]     # each rank its own GPU
+        methods = {name: load_policy(name, args.checkpoint, args.sampler, device=device, **sampling)
+                   for name in names}
         results = evaluate(methods, tasks, args.episodes, args.seed_start, args.workers)
     except ValueError as err:
         print(err, file=sys.stderr)
         return 1
+    if results['processes'] > 1 and torch.distributed.get_rank() != 0:
+        return 0
     print(markdown_table(results))
     skipped = {task: [s['seed'] for s in seeds] for task, seeds in results['skipped'].items() if seeds}
     if skipped:
@@ -117,8 +126,10 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--episodes', type=int, default=10, help='episodes per task (default 10)')
     parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
     parser.add_argument('--phrasings', default='seen',
-                        help='comma-separated: seen (training phrasings), heldout, nonsense (one word of the '
-                             'seen instruction kept, the rest made up); both = seen,heldout (default seen)')
+                        help='comma-separated: seen (training phrasings), heldout (the held-out template), '
+                             'paraphrase (hdp_msgs_py.instructions paraphrases, never trained on), nonsense (one '
+                             'word of the seen instruction kept, the rest made up); both = seen,heldout '
+                             '(default seen)')
     parser.add_argument('--min-confidence', type=float, default=None,
                         help="refuse an instruction whose first prediction is less confident "
                              "(default: planner_node's min_confidence)")
@@ -131,6 +142,7 @@ def configure_hierarchy(parser) -> None:
                         help='RK-Diffuser sampler (default ddim)')
     parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
     parser.add_argument('--threads', type=int, help='torch CPU threads')
+    parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     parser.add_argument('--json', type=Path, help='also write the results here')
     parser.set_defaults(func=run_hierarchy)
 
@@ -162,7 +174,11 @@ def run_hierarchy(args) -> int:
         torch.set_num_threads(args.threads)
     agent_path = args.agent_checkpoint or default_checkpoint()
     agent = NextBestPoseAgent.from_checkpoint(agent_path)
-    low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler) for name in agents}
+    try:
+        low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler, device=args.device)
+                      for name in agents}
+    except ValueError as err:
+        raise SystemExit(f'hdp eval hierarchy: {err}') from None
     min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     try:
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments,

@@ -22,6 +22,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
+from hdp_controller import distributed
 from hdp_controller.low_level import Scene
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
 from hdp_motion.rotations import quat_angle
@@ -261,18 +262,25 @@ def evaluate(methods: dict, tasks, episodes: int, seed_start: int, workers: int 
     seeds = range(seed_start, seed_start + episodes)
     check_seed_hygiene(methods, tasks, seeds)
     start = time.monotonic()
+    # Under torchrun each process takes every world-th episode; all gather every result.
+    rank, world, _ = distributed.start()
+    progress = progress and rank == 0
     with _job_runner(methods, workers) as run:
-        jobs = [(task, seed) for task in tasks for seed in seeds]
+        jobs = [(task, seed) for task in tasks for seed in seeds][rank::world]
         oracles = list(tqdm(run(_oracle_job, jobs), total=len(jobs), desc='expert demos',
                             unit='episode', disable=not progress))
         usable = [o for o in oracles if o.expert_success]
         jobs = [(name, oracle, tuple(camera_size), n_points) for name in methods for oracle in usable]
         records = list(tqdm(run(_episode_job, jobs), total=len(jobs), desc='evaluation',
                             unit='episode', disable=not progress))
+    skipped = [(o.task, o.seed, o.expert_reason) for o in oracles if not o.expert_success]
+    if world > 1:
+        skipped = sorted(s for part in distributed.gather(skipped, world) for s in part)
+        records = [r for part in distributed.gather(records, world) for r in part]
+        records.sort(key=lambda r: (list(methods).index(r.method), tasks.index(r.task), r.seed))
     results = {'tasks': tasks, 'seeds': [seed_start, seed_start + episodes - 1],
-               'camera_size': list(camera_size), 'n_points': n_points, 'workers': workers,
-               'skipped': {task: [{'seed': o.seed, 'reason': o.expert_reason}
-                                  for o in oracles if o.task == task and not o.expert_success]
+               'camera_size': list(camera_size), 'n_points': n_points, 'workers': workers, 'processes': world,
+               'skipped': {task: [{'seed': seed, 'reason': reason} for t, seed, reason in skipped if t == task]
                            for task in tasks},
                'methods': {}}
     for name in methods:

@@ -1,0 +1,59 @@
+"""Where training and evaluation run: the torch device, and processes launched by torchrun
+(its environment: RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR...).
+
+Training (DistributedDataParallel) and evaluation (episodes sharded over the
+ranks, one result gathered on rank 0) use the same launcher, so a run on
+several processes or machines is ``torchrun [--nnodes ...] --nproc-per-node N
+-m hdp_msgs_py.cli.main <the same hdp command>``. Without torchrun there is
+one process and nothing here starts a process group.
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+
+
+def torch_device(name: str) -> str:
+    """'cpu', 'cuda', 'cuda:N' or 'auto' (CUDA when there is one) -> a device torch has here;
+    ValueError naming what is missing otherwise."""
+    if name == 'auto':
+        return 'cuda' if torch.cuda.is_available() else 'cpu'
+    if name != 'cpu' and not (name == 'cuda' or name.startswith('cuda:')):
+        raise ValueError(f'device {name!r}: use cpu, cuda, cuda:N or auto')
+    if name.startswith('cuda') and not torch.cuda.is_available():
+        raise ValueError(f'device {name!r} asked for, but torch sees no CUDA device here')
+    return name
+
+
+def world_size() -> int:
+    return int(os.environ.get('WORLD_SIZE', '1'))
+
+
+def start(device: str = 'cpu') -> tuple[int, int, str]:
+    """(rank, world size, this process's device), joining torchrun's process group if it launched
+    us: NCCL on CUDA (one GPU per local rank), gloo on the CPU."""
+    world = world_size()
+    if world == 1:
+        return 0, 1, device
+    if device.startswith('cuda'):
+        device = f'cuda:{int(os.environ.get("LOCAL_RANK", "0"))}'
+        torch.cuda.set_device(device)
+    if not torch.distributed.is_initialized():
+        torch.distributed.init_process_group('nccl' if device.startswith('cuda') else 'gloo')
+    return torch.distributed.get_rank(), world, device
+
+
+def gather(value, world: int) -> list:
+    """Every rank's ``value`` (any picklable object), in rank order, on every rank."""
+    if world == 1:
+        return [value]
+    values = [None] * world
+    torch.distributed.all_gather_object(values, value)
+    return values
+
+
+def stop(world: int) -> None:
+    if world > 1 and torch.distributed.is_initialized():
+        torch.distributed.destroy_process_group()
