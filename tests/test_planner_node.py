@@ -50,6 +50,14 @@ def test_valid_instructions_are_stripped_and_may_have_unknown_words():
     assert validate_instruction('cup ' + 'x' * (MAX_INSTRUCTION_CHARS - 4), VOCABULARY)
 
 
+def test_without_a_vocabulary_only_empty_and_overlong_instructions_are_refused():
+    """A sentence-encoder agent reads words no template had; its confidence refuses the rest."""
+    assert validate_instruction(' uncover the saucepan ', None) == 'uncover the saucepan'
+    for text, reason in (('  ', 'empty'), ('x' * (MAX_INSTRUCTION_CHARS + 1), 'more than')):
+        with pytest.raises(InstructionRefused, match=reason):
+            validate_instruction(text, None)
+
+
 # --- the loop, with a fake agent and synthetic frames ---------------------------------------------
 
 class FakeAgent:

@@ -51,13 +51,16 @@ class InstructionRefused(ValueError):
 
 def validate_instruction(text: str, vocabulary) -> str:
     """The instruction stripped of surrounding space, or InstructionRefused: empty, longer than
-    MAX_INSTRUCTION_CHARS, or without a word of ``vocabulary`` beyond the filler words."""
+    MAX_INSTRUCTION_CHARS, or without a word of ``vocabulary`` beyond the filler words
+    (``vocabulary`` None: no word check)."""
     stripped = text.strip()
     if not stripped:
         raise InstructionRefused('the instruction is empty')
     if len(stripped) > MAX_INSTRUCTION_CHARS:
         raise InstructionRefused(f'the instruction has {len(stripped)} characters, '
                                  f'more than {MAX_INSTRUCTION_CHARS}')
+    if vocabulary is None:
+        return stripped
     content = set(vocabulary) - FILLER_WORDS
     if not any(w in content for w in words(stripped)):
         raise InstructionRefused(f'no word of {stripped!r} names anything the agent was trained on '
@@ -172,7 +175,7 @@ class PlannerLoop:
     def __init__(self, agent, vocabulary, max_segments: int = 8, camera_timeout_s: float = 5.0,
                  result_timeout_s: float = 60.0, observations: Observations | None = None,
                  min_confidence: float = DEFAULT_MIN_CONFIDENCE):
-        self.agent, self.vocabulary = agent, tuple(vocabulary)
+        self.agent, self.vocabulary = agent, None if vocabulary is None else tuple(vocabulary)
         self.min_confidence = min_confidence
         self.max_segments = max_segments
         self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s

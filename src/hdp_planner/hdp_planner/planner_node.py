@@ -57,7 +57,11 @@ class PlannerNode(ros.Node):
         prefix = p['joint_prefix']
         observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
                                     panda.finger_joint_names(prefix))
-        self.loop = PlannerLoop(agent, agent.model.config.vocabulary, p['max_segments'], p['camera_timeout_s'],
+        # A word encoder knows only its vocabulary; a sentence encoder reads any words, and the
+        # agent's confidence alone refuses what it cannot act on (as the hierarchy evaluation does).
+        config = agent.model.config
+        vocabulary = config.vocabulary if config.language_encoder == 'words' else None
+        self.loop = PlannerLoop(agent, vocabulary, p['max_segments'], p['camera_timeout_s'],
                                 p['result_timeout_s'], observations, p['min_confidence'])
 
         self.status = ros.Status(self)
