@@ -107,6 +107,11 @@ def test_planner_plans_in_free_space_and_reports_no_path(world):
     assert here.ok and here.extras['kind'] == 'none' and here.joints.shape == (1, 7)
     lost = PlannerPolicy().plan(_request_to(world, [2.0, 0.0, 1.0], quat))
     assert not lost.ok and lost.failure == 'no_path' and not lost.ik_error
+    rrt = PlannerPolicy(straight_first=False)          # the paper's Planner row: RRT-Connect even here
+    searched = rrt.plan(_request_to(world, xyz + [0.1, 0.0, 0.0], quat))
+    assert rrt.name == 'planner_rrt' and searched.ok and searched.extras['kind'] == 'rrt'
+    end, _ = planning.ee_pose(world.client_id, world.robot, searched.joints[-1])
+    np.testing.assert_allclose(end, xyz + [0.1, 0.0, 0.0], atol=2e-3)
 
 
 # --- oracle and episodes -----------------------------------------------------------------

@@ -50,14 +50,17 @@ def _at_pose(pose, goal) -> bool:
 
 
 class PlannerPolicy:
-    """The "Planner" baseline: straight line if collision free, else RRT-Connect, to the NBP."""
+    """The "Planner" baseline: straight line if collision free, else RRT-Connect, to the NBP
+    (RLBench's EndEffectorPoseViaPlanning); ``straight_first`` False: RRT-Connect only, as the
+    paper describes its Planner row ('planner_rrt')."""
 
-    name = 'planner'
     training_seeds = None       # nothing learned: any evaluation seed is fair
 
-    def __init__(self, rrt_timeout: float = 5.0, seed: int = 0):
+    def __init__(self, rrt_timeout: float = 5.0, seed: int = 0, straight_first: bool = True):
         self.rrt_timeout = rrt_timeout
         self.seed = seed        # OMPL's: the same request plans the same path
+        self.straight_first = straight_first
+        self.name = 'planner' if straight_first else 'planner_rrt'
 
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
         if _at_pose(request.start_pose, request.goal_pose):
@@ -68,7 +71,7 @@ class PlannerPolicy:
         found = planning.plan_to_pose(scene.client, scene.robot, request.q, request.goal_pose[:3],
                                     request.goal_pose[3:], list(scene.obstacles),
                                     timeout=self.rrt_timeout, seed=self.seed,
-                                    attached=_free_attached_body(scene))
+                                    attached=_free_attached_body(scene), straight_first=self.straight_first)
         if found is None:
             return PlanResult(None, failure='no_path', ik_error=False)
         path, kind = found

@@ -21,7 +21,7 @@ from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajecto
 
 from .action_clients import ArmAction, GripperAction
 from .controller_logic import REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, SegmentController
-from .policy import METHODS, load_policy
+from .policy import LEARNED, METHODS, load_policy
 from .trajectory import VELOCITY_SCALE
 
 _STEP_S = 0.05
@@ -73,7 +73,7 @@ class ControllerNode(ros.Node):
             raise ros.StartupError(f"cannot load the {p['method']} policy: {err}") from None
         prefix = p['joint_prefix']
         self.logic = SegmentController(
-            policy, needs_points=p['method'] != 'planner', velocity_scale=p['velocity_scale'],
+            policy, needs_points=p['method'] in LEARNED, velocity_scale=p['velocity_scale'],
             segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
             finger_joints=panda.finger_joint_names(prefix),
             reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits)
@@ -103,7 +103,7 @@ class ControllerNode(ros.Node):
         self.create_timer(_STEP_S, self._step)
         # On the wall clock: under use_sim_time the timer above stops with the simulator.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        sampler = f" ({p['sampler']} sampler)" if p['method'] != 'planner' else ''
+        sampler = f" ({p['sampler']} sampler)" if p['method'] in LEARNED else ''
         self.status.info(f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']}")
 
     def _now(self) -> float:

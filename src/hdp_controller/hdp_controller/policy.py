@@ -1,6 +1,7 @@
 """RK-Diffuser and its learned ablations as LowLevelPolicy objects.
 
   rkd      sample both diffusers, refine the joints onto the poses (the paper's method)
+  planner, planner_rrt  (baselines.PlannerPolicy: straight line else RRT-Connect; RRT-Connect only)
   joint    the joint diffuser alone: no distillation at inference, no refinement, no smoothing
   pose_ik  the pose diffuser (smoothed), then IK per waypoint (baselines.PoseIKPolicy)
 
@@ -23,7 +24,8 @@ from .low_level import PlanResult, Scene, SegmentRequest
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses
 from .rk_diffuser import RKDiffuser, as_batch
 
-METHODS = ('rkd', 'planner', 'pose_ik', 'joint')
+METHODS = ('rkd', 'planner', 'planner_rrt', 'pose_ik', 'joint')
+LEARNED = ('rkd', 'pose_ik', 'joint')        # they read the checkpoint and the camera's points
 DEFAULT_CHECKPOINT_NAME = 'rk_diffuser.pt'
 # The fast sampler: DDIM over FAST_STEPS of the 100 training steps, without
 # classifier-free guidance (half the network evaluations). The refinement is the
@@ -123,10 +125,10 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
     """
     if method not in METHODS:
         raise ValueError(f'unknown low-level method {method!r}; choose from {", ".join(METHODS)}')
-    if method in ('planner', 'pose_ik'):
+    if method in ('planner', 'planner_rrt', 'pose_ik'):
         from .baselines import PlannerPolicy, PoseIKPolicy   # they plan: PyBullet and OMPL, loaded only here
-    if method == 'planner':
-        return PlannerPolicy()
+    if method in ('planner', 'planner_rrt'):
+        return PlannerPolicy(straight_first=method == 'planner')
     model, payload = checkpoint.load_model(checkpoint_path or default_checkpoint())
     fast = sampler == 'ddim'
     if guidance is None and fast:

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-METHODS = ('rkd', 'planner', 'pose_ik', 'joint')
+METHODS = ('rkd', 'planner', 'planner_rrt', 'pose_ik', 'joint')
 
 
 def configure(parser) -> None:

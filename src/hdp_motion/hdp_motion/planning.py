@@ -333,16 +333,17 @@ def rrt_connect(client, robot, q_start, q_goal, obstacles, timeout=5.0, seed=0,
 
 
 def plan_to_pose(client, robot, q_start, xyz, quat, obstacles, timeout=5.0, seed=0,
-                 simplify=True, attached=None, margin=MARGIN, ik_attempts=20):
+                 simplify=True, attached=None, margin=MARGIN, ik_attempts=20, straight_first=True):
     """RLBench's rule: (path (N, 7), 'linear') when a straight line works,
     else (path, 'rrt') from RRT-Connect to an IK goal, else None.
+    ``straight_first`` False: RRT-Connect only (the paper's Planner row).
 
     The goal configuration is IK seeded from q_start first, then from up to
     ik_attempts - 1 random seeds (drawn from `seed`), and must be collision
     free. Arguments as for linear_path and rrt_connect.
     """
     path = linear_path(client, robot, q_start, xyz, quat, obstacles,
-                       attached=attached, margin=margin)
+                       attached=attached, margin=margin) if straight_first else None
     if path is not None:
         return path, 'linear'
     rng = np.random.default_rng(seed)
