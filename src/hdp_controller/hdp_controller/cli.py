@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-
-import yaml
 
 
 def configure_train(parser: argparse.ArgumentParser) -> None:
@@ -14,7 +11,8 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
                           'Panda kinematics) on the successful episodes in DATA. Resumes when OUT.resume exists.')
     parser.add_argument('--data', required=True, help='directory of rosbag2 episodes (hdp collect)')
     parser.add_argument('--out', required=True, help='checkpoint to write (OUT.resume holds the training state)')
-    parser.add_argument('--config', help='YAML file with "model:" (RKDConfig) and/or "train:" (TrainConfig) keys')
+    parser.add_argument('--config', help='YAML file with "model:" (RKDConfig) and/or "train:" (TrainConfig) '
+                        'sections (hdp_msgs_py.config; unknown keys are refused)')
     parser.add_argument('--steps', type=int, help='training steps (overrides the config)')
     parser.add_argument('--batch-size', type=int, help='batch size (overrides the config)')
     parser.add_argument('--seed', type=int, help='seed (overrides the config)')
@@ -31,29 +29,22 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
 def _train(args) -> int:
     import torch
 
-    from .distributed import torch_device
+    from hdp_msgs_py.config import ConfigError, as_dict, load_sections
+    from hdp_msgs_py.distributed import torch_device
+
+    from .rk_diffuser import RKDConfig      # torch: only once a command runs
     from .train import TrainConfig, train
-    values = {}
-    if args.config:
-        with open(args.config, encoding='utf-8') as f:
-            values = yaml.safe_load(f) or {}
-        if not isinstance(values, dict) or set(values) - {'model', 'train'}:
-            raise SystemExit(f'{args.config}: expected a mapping with "model" and/or "train" keys')
     try:
-        from .rk_diffuser import RKDConfig      # torch: only once a command runs
-        model_config = RKDConfig.from_dict(values.get('model') or {})
-        train_values = dict(values.get('train') or {})
-        for key in ('steps', 'batch_size', 'seed'):
-            if getattr(args, key) is not None:
-                train_values[key] = getattr(args, key)
-        train_config = TrainConfig(**train_values)
-    except (TypeError, ValueError) as err:
+        configs = load_sections(args.config, {'model': RKDConfig, 'train': TrainConfig}, overrides={
+            'train': {'steps': args.steps, 'batch_size': args.batch_size, 'seed': args.seed}})
+    except ConfigError as err:
         raise SystemExit(f'hdp train low-level: bad configuration: {err}') from None
+    model_config, train_config = configs['model'], configs['train']
     if train_config.steps < 1 or train_config.batch_size < 1:
         raise SystemExit('hdp train low-level: --steps and --batch-size must be >= 1')
     if args.threads:
         torch.set_num_threads(args.threads)
-    print(json.dumps({'model': dataclasses.asdict(model_config), 'train': dataclasses.asdict(train_config)}))
+    print(json.dumps(as_dict(configs)))
     try:
         out = train(args.data, args.out, model_config, train_config, torch_device(args.device), args.cache,
                     init=args.init)

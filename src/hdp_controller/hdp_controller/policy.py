@@ -17,9 +17,9 @@ import numpy as np
 import torch
 
 from hdp_motion import panda
-from hdp_msgs_py import checkpoints
+from hdp_msgs_py import checkpoints, distributed
 
-from . import checkpoint, distributed
+from . import checkpoint
 from .low_level import PlanResult, Scene, SegmentRequest
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses
 from .rk_diffuser import RKDiffuser, as_batch

@@ -55,8 +55,8 @@ def _names(text: str, known, what: str) -> list[str]:
 def run(args) -> int:
     import torch
 
-    from hdp_controller import distributed
     from hdp_controller.policy import load_policy
+    from hdp_msgs_py import distributed
 
     from .low_level_eval import evaluate, markdown_table
     if args.episodes < 1 or args.workers < 1:

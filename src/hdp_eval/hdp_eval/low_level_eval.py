@@ -22,10 +22,10 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from hdp_controller import distributed
 from hdp_controller.low_level import Scene
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
 from hdp_motion.rotations import quat_angle
+from hdp_msgs_py import distributed
 from hdp_msgs_py.keyframes import discover_keyframes
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.collect import JOINT_STATE_EVERY

@@ -1,23 +1,24 @@
 """Where training and evaluation run: the torch device, and processes launched by torchrun
 (its environment: RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR...).
 
-Training (DistributedDataParallel) and evaluation (episodes sharded over the
-ranks, one result gathered on rank 0) use the same launcher, so a run on
-several processes or machines is ``torchrun [--nnodes ...] --nproc-per-node N
--m hdp_msgs_py.cli.main <the same hdp command>``. Without torchrun there is
-one process and nothing here starts a process group.
+Both trainers (DistributedDataParallel) and the low level's evaluation (episodes
+sharded over the ranks, one result gathered on rank 0) use the same launcher, so a
+run on several processes or machines is ``torchrun [--nnodes ...] --nproc-per-node
+N -m hdp_msgs_py.cli.main <the same hdp command>``. Without torchrun there is one
+process and nothing here starts a process group. torch is imported inside the
+functions only (as in ``checkpoints``): hdp_msgs_py needs no torch at import.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
-
-import torch
 
 
 def torch_device(name: str) -> str:
     """'cpu', 'cuda', 'cuda:N' or 'auto' (CUDA when there is one) -> a device torch has here;
     ValueError naming what is missing otherwise."""
+    import torch
     if name == 'auto':
         return 'cuda' if torch.cuda.is_available() else 'cpu'
     if name != 'cpu' and not (name == 'cuda' or name.startswith('cuda:')):
@@ -34,6 +35,7 @@ def world_size() -> int:
 def start(device: str = 'cpu') -> tuple[int, int, str]:
     """(rank, world size, this process's device), joining torchrun's process group if it launched
     us: NCCL on CUDA (one GPU per local rank), gloo on the CPU."""
+    import torch
     world = world_size()
     if world == 1:
         return 0, 1, device
@@ -49,11 +51,29 @@ def gather(value, world: int) -> list:
     """Every rank's ``value`` (any picklable object), in rank order, on every rank."""
     if world == 1:
         return [value]
+    import torch
     values = [None] * world
     torch.distributed.all_gather_object(values, value)
     return values
 
 
+def barrier(world: int) -> None:
+    """Wait until every rank has come here."""
+    if world > 1:
+        import torch
+        torch.distributed.barrier()
+
+
+def weights_digest(model) -> str:
+    """sha256 of every tensor of ``model``'s state dict: equal on every rank, or the ranks have diverged."""
+    digest = hashlib.sha256()
+    for tensor in model.state_dict().values():
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
 def stop(world: int) -> None:
-    if world > 1 and torch.distributed.is_initialized():
-        torch.distributed.destroy_process_group()
+    if world > 1:
+        import torch
+        if torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()

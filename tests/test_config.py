@@ -1,0 +1,119 @@
+"""hdp_msgs_py.config: the one --config mechanism of both trainers (sections of dataclasses,
+defaults < file < flags, unknown sections and keys refused in one line naming the known ones)."""
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hdp_msgs_py.config import ConfigError, as_dict, load_sections
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclasses.dataclass(frozen=True)
+class Model:
+    vocabulary: tuple
+    width: int = 4
+    sizes: tuple = (1, 2)
+    rate: float = 0.1
+    name: str = 'small'
+    shared: bool = False
+
+    def __post_init__(self):
+        if self.name not in ('small', 'large'):
+            raise ValueError(f'name {self.name!r} is not small or large')
+
+
+@dataclasses.dataclass
+class Train:
+    steps: int = 10
+    lr: float = 1e-3
+
+
+SECTIONS = {'model': Model, 'train': Train}
+
+
+def load(tmp_path, text, **kwargs):
+    path = tmp_path / 'c.yaml'
+    path.write_text(text)
+    return load_sections(path, SECTIONS, **kwargs)
+
+
+def test_defaults_then_file_then_overrides(tmp_path):
+    configs = load(tmp_path, 'model: {width: 8, sizes: [3, 4, 5], rate: 1}\ntrain: {steps: 20, lr: 0.5}\n',
+                   defaults={'model': {'vocabulary': ('a',), 'width': 2}},
+                   overrides={'train': {'steps': 30, 'lr': None}})        # None: a flag not given
+    assert configs == {'model': Model(('a',), 8, (3, 4, 5), 1.0), 'train': Train(30, 0.5)}
+    assert isinstance(configs['model'].rate, float) and isinstance(configs['model'].sizes, tuple)
+    assert as_dict(configs) == {'model': {'vocabulary': ['a'], 'width': 8, 'sizes': [3, 4, 5], 'rate': 1.0,
+                                          'name': 'small', 'shared': False}, 'train': {'steps': 30, 'lr': 0.5}}
+    assert load_sections(None, {'train': Train}) == {'train': Train()}                   # no file: the defaults
+    assert load(tmp_path, '', defaults={'model': {'vocabulary': ()}})['train'] == Train()   # an empty file too
+    assert load(tmp_path, 'train:\n', defaults={'model': {'vocabulary': ()}})['train'] == Train()
+
+
+@pytest.mark.parametrize('text, message', [
+    ('model: {vocabulary: [a], widht: 3}\n', 'model: unknown key widht; known: vocabulary, width, sizes, rate, name, '
+                                              'shared'),
+    ('train: {step: 3, rate: 2}\n', 'train: unknown keys rate, step; known: steps, lr'),
+    ('optimiser: {}\nschedule: {}\n', 'unknown sections optimiser, schedule; known: model, train'),
+    ('- model\n', 'expected a mapping of sections (model, train)'),
+    ('train: 5\n', 'section train must be a mapping of keys to values'),
+    ('train: {steps: [1\n', 'not YAML'),
+    ('train: {lr: 5e-4}\n', "train.lr: expected a number, got '5e-4' (YAML reads 5e-4 as a string: "
+                            'write 0.0005 or 5.0e-4)'),
+    ('train: {steps: 2.5}\n', 'train.steps: expected an integer, got 2.5'),
+    ('train: {steps: true}\n', 'train.steps: expected an integer, got True'),
+    ('model: {vocabulary: [a], sizes: 3}\n', 'model.sizes: expected a list, got 3'),
+    ('model: {width: 3}\n', 'model: missing vocabulary'),
+    ('model: {vocabulary: [a], name: huge}\n', "model: name 'huge' is not small or large"),
+])
+def test_refusals_are_one_line_naming_the_file_and_what_is_known(tmp_path, text, message):
+    with pytest.raises(ConfigError) as refused:
+        load(tmp_path, text, defaults=None if 'missing' in message else {'model': {'vocabulary': ('a',)}})
+    assert str(refused.value).startswith(f'{tmp_path / "c.yaml"}: ') and message in str(refused.value)
+    assert '\n' not in str(refused.value)
+
+
+def test_a_missing_file_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ConfigError, match=r'nothing\.yaml: cannot read it \(No such file or directory\)$'):
+        load_sections(tmp_path / 'nothing.yaml', SECTIONS)
+
+
+def test_overrides_are_checked_like_the_file(tmp_path):
+    with pytest.raises(ConfigError, match=r'train: unknown key batch; known: steps, lr'):
+        load_sections(None, {'train': Train}, overrides={'train': {'batch': 4}})
+
+
+def test_the_loader_and_the_launcher_helpers_import_no_torch():
+    probe = 'import sys, hdp_msgs_py.config, hdp_msgs_py.distributed; print("torch" in sys.modules)'
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=60)
+    assert result.stdout.strip() == 'False', result.stderr
+
+
+def test_the_low_level_configs_load_as_before():
+    """The released RK-Diffuser configs give what RKDConfig.from_dict and TrainConfig(**) gave."""
+    import yaml
+
+    from hdp_controller.rk_diffuser import RKDConfig
+    from hdp_controller.train import TrainConfig
+    for path in sorted((ROOT / 'src/hdp_controller/config').glob('*.yaml')):
+        values = yaml.safe_load(path.read_text())
+        configs = load_sections(path, {'model': RKDConfig, 'train': TrainConfig})
+        assert configs['model'] == RKDConfig.from_dict(values.get('model') or {}), path
+        assert configs['train'] == TrainConfig(**(values.get('train') or {})), path
+
+
+def test_low_level_cli_refuses_an_unknown_key_in_one_line(tmp_path):
+    config = tmp_path / 'rkd.yaml'
+    config.write_text('train: {steps: 2, batch: 4}\n')
+    refused = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'train', 'low-level', '--data',
+                              str(tmp_path), '--out', str(tmp_path / 'r.pt'), '--config', str(config)],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0
+    assert refused.stderr.strip() == (
+        f'hdp train low-level: bad configuration: {config}: train: unknown key batch; known: steps, batch_size, lr, '
+        'weight_decay, warmup_steps, ema_decay, save_every, seed, goal_augment'), refused.stderr
