@@ -3,9 +3,14 @@
 Fast and single-threaded: the networks here are tiny versions of the real one.
 """
 
+import dataclasses
+import inspect
+import json
 import math
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,12 +23,25 @@ from hdp_planner import checkpoint, language, rotations, voxels
 from hdp_planner.agent import NextBestPoseAgent
 from hdp_planner.dataset import KeyframeDataset, augment
 from hdp_planner.model import ModelConfig, NextBestPoseNet, proprio_vector
-from hdp_planner.train import losses, train, training_batch
+from hdp_planner.train import TrainConfig, losses, train, training_batch
 from hdp_sim_bridge.tasks import TASKS
 
 torch.set_num_threads(1)
 
 TINY = dict(grid_size=8, channels=(4, 8, 8), language_dim=16, head_hidden=32)
+HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+RELEASED_CONFIG = Path(__file__).resolve().parents[1] / 'src/hdp_planner/config/hdp_nbp_agent.yaml'
+
+
+@pytest.fixture(scope='module')
+def episodes(tmp_path_factory):
+    """One recorded reach_target episode (seed 21), small images: training data for the CLI."""
+    data = tmp_path_factory.mktemp('agent') / 'episodes'
+    collected = subprocess.run([*HDP, 'collect', '--tasks', 'reach_target', '--episodes', '1', '--seed-start', '21',
+                                '--out', str(data), '--width', '64', '--height', '48'],
+                               capture_output=True, text=True, timeout=300)
+    assert collected.returncode == 0, collected.stderr
+    return data
 
 
 def tiny_model(seed=0) -> NextBestPoseNet:
@@ -216,12 +234,8 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
         checkpoint.load(tmp_path / 'other.pt')
 
 
-def test_train_continues_refuses_other_options_and_fine_tunes_with_the_union_of_seeds(tmp_path):
-    data = tmp_path / 'episodes'
-    collected = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'collect', '--tasks', 'reach_target',
-                                '--episodes', '1', '--seed-start', '21', '--out', str(data), '--width', '64',
-                                '--height', '48'], capture_output=True, text=True, timeout=300)
-    assert collected.returncode == 0, collected.stderr
+def test_train_continues_refuses_other_options_and_fine_tunes_with_the_union_of_seeds(episodes, tmp_path):
+    data = episodes
     config = ModelConfig(vocabulary=tuple(language.task_vocabulary()), **TINY)
     options = dict(batch=2, model_config=config, cache=tmp_path / 'cache', save_every=1, log=lambda _: None,
                    progress=False)
@@ -250,6 +264,107 @@ def test_train_continues_refuses_other_options_and_fine_tunes_with_the_union_of_
     other = ModelConfig(vocabulary=tuple(language.task_vocabulary()), **{**TINY, 'head_hidden': 16})
     with pytest.raises(checkpoint.CheckpointError, match='another model config'):
         train(data, tmp_path / 'x.pt', steps=1, **{**options, 'model_config': other}, init=out)
+
+
+def test_train_config_defaults_are_train_defaults_and_the_released_recipe_is_the_release():
+    """TrainConfig (the --config "train:" section) defaults to what train() and the flags did before it;
+    config/hdp_nbp_agent.yaml rebuilds the released agent's network and hyper-parameters (the
+    vocabulary is today's task phrasings', which have grown since the release's six tasks)."""
+    from hdp_msgs_py.config import load_sections
+    defaults = {name: p.default for name, p in inspect.signature(train).parameters.items()}
+    assert {f.name: defaults[f.name] for f in dataclasses.fields(TrainConfig)} == vars(TrainConfig())
+    configs = load_sections(RELEASED_CONFIG, {'model': ModelConfig, 'train': TrainConfig},
+                            defaults={'model': {'vocabulary': tuple(language.task_vocabulary())}})
+    released = checkpoint.load(Path(__file__).resolve().parents[1] / 'models/hdp_nbp_agent.pt')['config']
+    stored = ModelConfig.from_dict(released['model'])
+    assert configs['model'] == ModelConfig(**{**vars(stored), 'vocabulary': configs['model'].vocabulary})
+    assert {k: released['train'][k] for k in ('steps', 'batch', 'lr', 'seed')} == {
+        'steps': 12000, 'batch': 16, 'lr': 5e-4, 'seed': 0} == {
+        k: getattr(configs['train'], k) for k in ('steps', 'batch', 'lr', 'seed')}
+
+
+def test_train_cli_config_unknown_keys_and_bad_values_fail_with_one_line(tmp_path):
+    config = tmp_path / 'agent.yaml'
+    base = [*HDP, 'train', 'high-level', '--data', str(tmp_path), '--out', str(tmp_path / 'a.pt'), '--config',
+            str(config)]
+    for text, expected in [
+            ('model: {grid_size: 8, channel: [4, 8, 8]}\n',
+             f'hdp train high-level: bad configuration: {config}: model: unknown key channel; known: vocabulary, '
+             'grid_size, channels, language_dim, max_words, fine_half_extent, head_hidden, language_encoder'),
+            ('train: {steps: 2, batch_size: 4}\n',
+             f'hdp train high-level: bad configuration: {config}: train: unknown key batch_size; known: steps, '
+             'batch, lr, seed, val_every, save_every'),
+            ('optimiser: {lr: 0.1}\n',
+             f'hdp train high-level: bad configuration: {config}: unknown section optimiser; known: model, train'),
+            ('train: {lr: 5e-4}\n',
+             f"hdp train high-level: bad configuration: {config}: train.lr: expected a number, got '5e-4' "
+             '(YAML reads 5e-4 as a string: write 0.0005 or 5.0e-4)'),
+            ('model: {language_encoder: bert}\n',
+             f"hdp train high-level: bad configuration: {config}: model: language_encoder 'bert' is not one of "
+             "('words', 'minilm')"),
+            ('train: {save_every: 0}\n',
+             'hdp train high-level: steps, batch, val_every and save_every must be >= 1 and lr > 0')]:
+        config.write_text(text)
+        refused = subprocess.run(base, capture_output=True, text=True, timeout=120)
+        assert refused.returncode != 0 and refused.stderr.strip() == expected, refused.stderr
+
+
+def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path):
+    """DDP over gloo: both ranks end with identical weights (the trainer compares their digests
+    at every save and refuses to go on otherwise; the checkpoint records the digest), and two
+    processes of 2 samples match one process of the combined 4 to float rounding, except in the
+    parameters the loss does not depend on (below). Also: --config with flags over it, and the
+    resolved config printed as JSON."""
+    config = tmp_path / 'tiny.yaml'
+    config.write_text('model: {grid_size: 8, channels: [4, 8, 8], language_dim: 16, head_hidden: 32}\n'
+                      'train: {batch: 2, save_every: 1, lr: 0.4}\n')       # a large lr: warmup starts at lr / 200
+    options = ['train', 'high-level', '--data', str(episodes), '--config', str(config), '--steps', '3',
+               '--batch', '4', '--cache', str(tmp_path / 'cache'), '--threads', '1']
+    one = subprocess.run([*HDP, *options, '--out', str(tmp_path / 'one.pt')], text=True, capture_output=True,
+                         timeout=300)
+    assert one.returncode == 0, one.stderr
+    resolved = json.loads(one.stdout.splitlines()[0])
+    assert resolved['train'] == {'steps': 3, 'batch': 4, 'lr': 0.4, 'seed': 0, 'val_every': 1000, 'save_every': 1}
+    assert resolved['model']['channels'] == [4, 8, 8] and resolved['model']['language_encoder'] == 'words'
+    assert resolved['model']['vocabulary'] == language.task_vocabulary()
+    env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
+    two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
+                          '-m', 'hdp_msgs_py.cli.main', *options, '--out', str(tmp_path / 'two.pt')],
+                         text=True, capture_output=True, timeout=300, env=env)
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert two.stdout.count('"train": {') == 1          # rank 0 alone prints
+    single, split = checkpoint.load(tmp_path / 'one.pt'), checkpoint.load(tmp_path / 'two.pt')
+    assert (single['config']['train']['processes'], split['config']['train']['processes']) == (1, 2)
+    from hdp_msgs_py.distributed import weights_digest
+    assert weights_digest(checkpoint.build_model(split)) == split['config']['train']['weights_sha256']
+    # The loss is invariant to a constant added to every logit of a softmax, so the heatmaps' logit
+    # biases and the attention's key bias get gradients of float rounding, which Adam scales up to
+    # steps of about lr: noise, differently rounded in one process and in two. They change no output.
+    noise = {'coarse_heatmap.bias': slice(None), 'fine_heatmap.bias': slice(0, 1),
+             'language.layer.self_attn.in_proj_bias': slice(TINY['language_dim'], 2 * TINY['language_dim'])}
+    model = tiny_model()
+    rng = np.random.default_rng(3)
+    dataset = KeyframeDataset([synthetic_episode(rng, 'open_drawer'), synthetic_episode(rng, 'pick_up_cup')])
+    losses(model, training_batch([dataset.item(i, rng) for i in range(len(dataset))], model.config, rng))[
+        'total'].backward()
+    gradients = dict(model.named_parameters())
+    largest = max(float(p.grad.abs().max()) for p in model.parameters() if p.grad is not None)
+    assert all(float(gradients[k].grad[rows].abs().max()) < 1e-6 * largest for k, rows in noise.items())
+
+    def difference(name):
+        d = (single['model'][name].float() - split['model'][name].float()).abs()
+        if name in noise:
+            d[noise[name]] = 0
+        return float(d.max())
+    worst = max(difference(k) for k in single['model'])
+    assert worst < 1e-5, f'two processes differ from one by {worst}'
+    torch.manual_seed(0)                         # train()'s initial weights for seed 0
+    start = NextBestPoseNet(ModelConfig.from_dict(single['config']['model'])).state_dict()
+    moved = max(float((single['model'][k].float() - start[k].float()).abs().max()) for k in single['model'])
+    assert moved > 1000 * worst        # three steps moved the weights far more than the two runs differ
+    (_, [one_row]), (_, [two_row]) = read_curves(tmp_path / 'one_curves.csv'), read_curves(tmp_path / 'two_curves.csv')
+    assert one_row['step'] == two_row['step'] == 3
+    assert math.isclose(one_row['total'], two_row['total'], rel_tol=1e-5)   # the global batch's losses, both
 
 
 def test_agent_predicts_a_pose_from_camera_frames(tmp_path):

@@ -17,39 +17,79 @@ def configure_train(parser) -> None:
     """Train the next-best-pose agent on recorded episodes; continues --out if it exists with the same options."""
     parser.add_argument('--data', type=Path, required=True, help='directory of episode bags')
     parser.add_argument('--out', type=Path, required=True, help='checkpoint to write (and continue)')
-    parser.add_argument('--steps', type=int, default=6000, help='optimiser steps (default 6000)')
-    parser.add_argument('--batch', type=int, default=16, help='samples per step (default 16)')
-    parser.add_argument('--lr', type=float, default=5e-4, help='peak learning rate (default 5e-4)')
-    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--config', type=Path,
+                        help='YAML file with "model:" (ModelConfig) and/or "train:" (TrainConfig) sections '
+                             '(hdp_msgs_py.config; unknown keys are refused), e.g. the released agent\'s '
+                             'src/hdp_planner/config/hdp_nbp_agent.yaml; the flags below override it')
+    parser.add_argument('--steps', type=int, help='optimiser steps (default 6000)')
+    parser.add_argument('--batch', type=int, help='samples per step, over all processes (default 16)')
+    parser.add_argument('--lr', type=float, help='peak learning rate (default 5e-4)')
+    parser.add_argument('--seed', type=int, help='seed (default 0)')
     parser.add_argument('--val-data', type=Path, help='episodes for validation metrics (held-out seeds)')
-    parser.add_argument('--val-every', type=int, default=1000, help='steps between validations (default 1000)')
+    parser.add_argument('--val-every', type=int, help='steps between validations (default 1000)')
     parser.add_argument('--cache', type=Path, help='decoded-sample cache (default: <data>_cache)')
     parser.add_argument('--init', type=Path, help='start from this checkpoint\'s weights (fine-tuning: fresh optimiser '
                         'and schedule; its training seeds are recorded too)')
-    parser.add_argument('--language-encoder', choices=('words', 'minilm'), default='words',
+    parser.add_argument('--language-encoder', choices=('words', 'minilm'),
                         help='words: learned over the task vocabulary (default); minilm: frozen pretrained '
                              'all-MiniLM-L6-v2 sentence encoder and a learned projection')
-    parser.add_argument('--device', default='cpu', help='cpu or cuda (default cpu)')
+    parser.add_argument('--device', default='cpu',
+                        help='cpu (default), cuda, cuda:N, or auto: cuda when present; under torchrun with cuda, '
+                             'each process takes the GPU of its local rank')
     parser.add_argument('--threads', type=int, help='torch CPU threads (default: torch decides)')
     parser.set_defaults(func=run_train)
 
 
+def resolve_train_config(args) -> dict:
+    """{'model': ModelConfig, 'train': TrainConfig} of a `hdp train high-level` command: the
+    dataclasses' defaults (the vocabulary: the task phrasings'), then --config, then the flags;
+    SystemExit with one line for a configuration refused."""
+    from hdp_msgs_py.config import ConfigError, load_sections
+
+    from .language import task_vocabulary
+    from .model import ModelConfig
+    from .train import TrainConfig
+    try:
+        configs = load_sections(
+            args.config, {'model': ModelConfig, 'train': TrainConfig},
+            defaults={'model': {'vocabulary': tuple(task_vocabulary())}},
+            overrides={'model': {'language_encoder': args.language_encoder},
+                       'train': {'steps': args.steps, 'batch': args.batch, 'lr': args.lr, 'seed': args.seed,
+                                 'val_every': args.val_every}})
+    except ConfigError as err:
+        raise SystemExit(f'hdp train high-level: bad configuration: {err}') from None
+    train = configs['train']
+    if min(train.steps, train.batch, train.val_every, train.save_every) < 1 or train.lr <= 0:
+        raise SystemExit('hdp train high-level: steps, batch, val_every and save_every must be >= 1 and lr > 0')
+    return configs
+
+
 def run_train(args) -> int:
+    import dataclasses
+    import os
+
+    from hdp_msgs_py.config import as_dict
+    from hdp_msgs_py.distributed import torch_device, world_size
     from hdp_msgs_py.episodes import EpisodeError
 
     from .checkpoint import CheckpointError
-    from .sentence_encoder import SentenceEncoderUnavailable
     from .train import train
-    if min(args.steps, args.batch, args.val_every) < 1 or args.lr <= 0:
-        raise SystemExit('--steps, --batch and --val-every must be >= 1 and --lr > 0')
+    configs = resolve_train_config(args)
+    if configs['train'].batch % world_size():
+        raise SystemExit(f'hdp train high-level: batch {configs["train"].batch} does not split over '
+                         f'{world_size()} processes')
     _threads(args)
+    if os.environ.get('RANK', '0') == '0':
+        print(json.dumps(as_dict(configs)), flush=True)
     try:
-        train(args.data, args.out, args.steps, args.batch, args.lr, args.seed, args.val_data, args.device,
-              args.cache, val_every=args.val_every, init=args.init, language_encoder=args.language_encoder)
-    except (CheckpointError, EpisodeError, FileNotFoundError, SentenceEncoderUnavailable) as err:
-        print(err, file=sys.stderr)
+        train(args.data, args.out, **dataclasses.asdict(configs['train']), val_data=args.val_data,
+              device=torch_device(args.device), cache=args.cache, model_config=configs['model'], init=args.init)
+    except (CheckpointError, EpisodeError, FileNotFoundError, ValueError) as err:
+        # ValueError: a device torch does not have, the sentence encoder's package missing, ...
+        print(f'hdp train high-level: {err}', file=sys.stderr)
         return 1
-    print(f'checkpoint: {args.out}')
+    if os.environ.get('RANK', '0') == '0':
+        print(f'checkpoint: {args.out}')
     return 0
 
 

@@ -5,19 +5,34 @@ ground truth moved by up to FINE_JITTER per axis (so it learns to correct a
 coarse guess) and learns the voxel, offset, rotation bins and gripper there.
 Cross-entropy on every discrete head (rotation: one per Euler axis), L1 on
 the offset, summed. AdamW with a short warmup and a cosine decay.
+
+Launched by ``torchrun``, it trains with DistributedDataParallel (gloo on the
+CPU, NCCL on CUDA), as the low level does: every step's global batch and all
+its random numbers (samples, augmentation, instructions, fine-cube jitter:
+numpy, seeded by (seed, step); word dropout: torch, seeded likewise) are drawn
+alike on every rank, and rank r takes rows r, r + N, ... of the batch's grids
+and labels. The language encoder reads every instruction of the global batch,
+so its word dropout draws what one process draws, and the condition keeps the
+rank's rows. The network normalises with GroupNorm (per sample), and every
+loss is a mean over rows, so N processes compute the step one process would,
+split N ways: a run does not depend on how many processes ran it, and resumes
+without RNG state.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from hdp_msgs_py import distributed
 from hdp_msgs_py.curves import CurveLog, curves_path
 from hdp_msgs_py.episodes import union_of_seeds
 
@@ -32,32 +47,50 @@ WARMUP_STEPS = 200
 FINAL_LR_FRACTION = 0.1
 
 
-def training_batch(items, config: ModelConfig, rng: np.random.Generator, device='cpu') -> dict:
-    """Tensors for ``losses`` from dataset Items: both grids, the fine cube centres, and labels."""
-    n, size = len(items), config.grid_size
-    xyz, rgb, cloud = voxels.collate_clouds([(i.xyz, i.rgb) for i in items], device)
-    target = torch.as_tensor(np.stack([i.target_xyz for i in items]), dtype=torch.float32, device=device)
-    lower, upper = (b.to(device) for b in voxels.workspace_bounds(n))
+@dataclasses.dataclass
+class TrainConfig:
+    """The hyper-parameters of ``train`` (the ``train:`` section of ``hdp train high-level --config``);
+    the defaults are train()'s."""
+    steps: int = 6000
+    batch: int = 16              # the global batch: split over the processes under torchrun
+    lr: float = 5e-4
+    seed: int = 0
+    val_every: int = 1000
+    save_every: int = 250
+
+
+def training_batch(items, config: ModelConfig, rng: np.random.Generator, device='cpu', rank: int = 0,
+                   world: int = 1) -> dict:
+    """Tensors for ``losses`` from the dataset Items of a (global) batch: both grids, the fine cube
+    centres and the labels of rows rank, rank + world, ... (the jitter drawn for every row, then
+    sliced); the instructions and proprio vectors of every row, and which rows are this process's."""
+    size = config.grid_size
+    jitter = rng.uniform(-FINE_JITTER, FINE_JITTER, (len(items), 3))[rank::world]
+    mine = items[rank::world]
+    xyz, rgb, cloud = voxels.collate_clouds([(i.xyz, i.rgb) for i in mine], device)
+    target = torch.as_tensor(np.stack([i.target_xyz for i in mine]), dtype=torch.float32, device=device)
+    lower, upper = (b.to(device) for b in voxels.workspace_bounds(len(mine)))
     coarse_index, _ = voxels.voxel_of(target, lower, upper, size)
-    jitter = rng.uniform(-FINE_JITTER, FINE_JITTER, (n, 3))
     centre = target + torch.as_tensor(jitter, dtype=torch.float32, device=device)
     fine_lower, fine_upper = voxels.fine_bounds(centre, config.fine_half_extent)
     fine_index, offset = voxels.voxel_of(target, fine_lower, fine_upper, size)
     return {
         'instructions': [i.instruction for i in items],
         'proprio': torch.as_tensor(np.stack([i.proprio for i in items]), device=device),
+        'rows': slice(rank, None, world),
         'coarse_grid': voxels.voxelise(xyz, rgb, cloud, lower, upper, size),
         'coarse_index': coarse_index,
         'fine_grid': voxels.voxelise(xyz, rgb, cloud, fine_lower, fine_upper, size),
         'centre': centre, 'fine_index': fine_index, 'offset': offset,
-        'rotation': torch.as_tensor(rotations.quat_to_bins(np.stack([i.target_quat for i in items])), device=device),
-        'gripper': torch.as_tensor([int(i.target_open) for i in items], device=device),
+        'rotation': torch.as_tensor(rotations.quat_to_bins(np.stack([i.target_quat for i in mine])), device=device),
+        'gripper': torch.as_tensor([int(i.target_open) for i in mine], device=device),
     }
 
 
 def losses(model: NextBestPoseNet, batch: dict) -> dict:
-    """Per-head losses (scalars) and their sum under 'total'."""
-    condition = model.condition(batch['instructions'], batch['proprio'])
+    """Per-head losses (means over the batch's rows) and their sum under 'total'. The condition
+    is computed for every instruction and kept for ``batch['rows']`` (all when absent)."""
+    condition = model.condition(batch['instructions'], batch['proprio'])[batch.get('rows', slice(None))]
     coarse = model.coarse_logits(batch['coarse_grid'], condition)
     fine = model.fine_outputs(batch['fine_grid'], condition, batch['centre'], batch['fine_index'])
     parts = {
@@ -69,6 +102,18 @@ def losses(model: NextBestPoseNet, batch: dict) -> dict:
     }
     parts['total'] = sum(parts.values())
     return parts
+
+
+class _Losses(torch.nn.Module):
+    """The agent with ``losses`` as its forward: what DistributedDataParallel wraps, so that a
+    backward pass averages the gradients of every process."""
+
+    def __init__(self, model: NextBestPoseNet):
+        super().__init__()
+        self.model = model
+
+    def forward(self, batch: dict) -> dict:
+        return losses(self.model, batch)
 
 
 def learning_rate(step: int, steps: int, peak: float) -> float:
@@ -106,14 +151,27 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
     ``init``: a checkpoint whose weights start the run (fine-tuning with a fresh
     optimiser and schedule); its model config must match, and its training seeds
     are recorded with this data's. ``language_encoder`` ('words' or 'minilm') is used when
-    ``model_config`` is not given.
+    ``model_config`` is not given. Under torchrun (see the module docstring) ``batch`` is the
+    global batch and must split evenly; rank 0 alone logs, validates, writes curves and
+    checkpoints, and the ranks compare their weights at every save.
     """
     from tqdm import tqdm
     out = Path(out)
+    rank, world, device = distributed.start(device)
+    lead = rank == 0                  # the one process that logs and writes
+    if not lead:
+        log, progress = _quiet, False
+    if batch % world:
+        raise ValueError(f'batch {batch} does not split over {world} processes')
+    if not lead:
+        distributed.barrier(world)    # the lead decodes and caches the episodes; the others then read its cache
     dataset = KeyframeDataset.from_directory(data, cache, progress)
-    val = KeyframeDataset.from_directory(val_data, progress=progress) if val_data else None
+    val = KeyframeDataset.from_directory(val_data, progress=progress) if val_data and lead else None
+    if lead:
+        distributed.barrier(world)
     model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()), language_encoder=language_encoder)
     train_config = {'data': str(Path(data).resolve()), 'steps': steps, 'batch': batch, 'lr': lr, 'seed': seed}
+    torch.manual_seed(seed)           # the initial weights: from the seed, the same on every rank
     model = NextBestPoseNet(model_config).to(device)
     init_seeds = {}
     if init is not None:
@@ -147,29 +205,41 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
         log(f'continuing {out} from step {step}')
     per_task = ', '.join(f'{t}: {(dataset.tasks == t).sum()}' for t in np.unique(dataset.tasks))
     log(f'{len(dataset)} training samples ({per_task}){f"; {len(val)} validation samples" if val else ""}; '
-        f'{sum(p.numel() for p in model.parameters()):,} parameters')
-    # Seeded per (seed, step): a continued run is reproducible from where it resumed.
-    rng = np.random.default_rng([seed, step])
-    torch.manual_seed(seed * 1_000_003 + step)
+        f'{sum(p.numel() for p in model.parameters()):,} parameters'
+        + (f'; {world} processes of {batch // world} samples each' if world > 1 else ''))
+    net = _Losses(model)
+    if world > 1:
+        # The 1x1x1 convolutions' weights are channels_last: their gradients' strides differ from
+        # DDP's buckets only in size-1 dimensions (the same memory), which DDP warns of.
+        warnings.filterwarnings('ignore', message='Grad strides do not match bucket view strides')
+        net = torch.nn.parallel.DistributedDataParallel(net)
     model.train()
-    curves = CurveLog(curves_path(out), resume_step=step)
+    curves = CurveLog(curves_path(out), resume_step=step) if lead else None
     started, running, counted = time.monotonic(), {}, 0
     with tqdm(total=steps, initial=step, unit='step', disable=not progress, mininterval=30) as bar:
         while step < steps:
             for group in optimizer.param_groups:
                 group['lr'] = learning_rate(step, steps, lr)
+            # Seeded per (seed, step), alike on every rank: a continued run is the uninterrupted one,
+            # and N processes draw the global batch one process draws.
+            rng = np.random.default_rng([seed, step])
+            torch.manual_seed(seed * 1_000_003 + step)
             items = [dataset.item(i, rng, augmented=True) for i in dataset.draw(batch, rng)]
-            parts = losses(model, training_batch(items, model_config, rng, device))
+            parts = net(training_batch(items, model_config, rng, device, rank, world))
             optimizer.zero_grad(set_to_none=True)
             parts['total'].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
             optimizer.step()
             step += 1
-            for name, value in parts.items():
-                running[name] = running.get(name, 0.0) + value.item()
+            values = torch.stack([value.detach() for value in parts.values()])
+            if world > 1:                 # the global batch's losses, for the log and the curves
+                torch.distributed.all_reduce(values)
+                values /= world
+            for name, value in zip(parts, values.tolist()):
+                running[name] = running.get(name, 0.0) + value
             counted += 1
             bar.update()
-            if step % 100 == 0 or step == steps:
+            if lead and (step % 100 == 0 or step == steps):
                 bar.write(f'step {step}: ' + ' '.join(f'{k} {v / counted:.3f}' for k, v in running.items())
                           + f' ({(time.monotonic() - started) / 60:.1f} min)')
                 curves.add(step, lr=learning_rate(step - 1, steps, lr), **{k: v / counted for k, v in running.items()})
@@ -181,5 +251,16 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
                 curves.add(step, **{f'val_{k}': overall[k] for k in ('translation_cm', 'rotation_symmetric_deg',
                                                                     'gripper_accuracy')})
             if step % save_every == 0 or step == steps:
-                checkpoint.save(out, model, optimizer, step, train_config, metrics, training_seeds)
+                digests = distributed.gather(distributed.weights_digest(model), world)
+                if len(set(digests)) > 1:
+                    raise RuntimeError(f'the {world} processes hold different weights at step {step}')
+                if lead:              # what ran it is recorded, not compared when continuing
+                    checkpoint.save(out, model, optimizer, step,
+                                    {**train_config, 'processes': world, 'weights_sha256': digests[0]},
+                                    metrics, training_seeds)
+    distributed.stop(world)
     return metrics
+
+
+def _quiet(*_args, **_kwargs) -> None:
+    pass
