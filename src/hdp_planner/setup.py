@@ -21,6 +21,7 @@ setup(
         'pyyaml',
         'tqdm',
         'torch',
+        'diffusers',       # hdp_planner.flat: Diffusion Policy's noise schedule and samplers
     ],
     extras_require={'test': ['pytest']},
     zip_safe=True,
@@ -36,6 +37,7 @@ setup(
             'train.high-level = hdp_planner.cli:configure_train',
             'eval.high-level-offline = hdp_planner.cli:configure_eval',
             'bench.language = hdp_planner.cli:configure_bench_language',
+            'train.flat = hdp_planner.flat.cli:configure_train',
         ],
     },
 )

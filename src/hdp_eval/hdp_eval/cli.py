@@ -121,7 +121,8 @@ def configure_hierarchy(parser) -> None:
     """Closed-loop evaluation of the whole hierarchy in the sim, like the paper's Table 1."""
     parser.add_argument('--agents', default='hdp,nbp_planner,nbp_joint',
                         help='comma-separated: hdp (agent + RK-Diffuser), nbp_planner (agent + planner), '
-                             'nbp_joint (agent + joint diffusion); default all three')
+                             'nbp_joint (agent + joint diffusion), and the flat baselines diffusion_policy '
+                             'and act (hdp_planner.flat); default the three hierarchical rows')
     parser.add_argument('--tasks', default='all', help='comma-separated task names, "all" or "first_six"')
     parser.add_argument('--episodes', type=int, default=10, help='episodes per task (default 10)')
     parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
@@ -141,6 +142,15 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
                         help='RK-Diffuser sampler (default ddim)')
     parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
+    parser.add_argument('--flat-diffusion-policy-checkpoint', type=Path,
+                        help='the diffusion_policy row (default: models/flat_diffusion_policy.pt, $HDP_MODELS_DIR)')
+    parser.add_argument('--flat-act-checkpoint', type=Path,
+                        help='the act row (default: models/flat_act.pt, $HDP_MODELS_DIR)')
+    parser.add_argument('--flat-max-seconds', type=float, default=30.0,
+                        help="the flat rows' budget per episode, s of sim time (default 30)")
+    parser.add_argument('--flat-cameras', choices=('rest', 'every'), default='rest',
+                        help='when the flat rows get a new camera frame: rest (at the start and whenever the '
+                             'arm comes to rest, as the demonstrations hold them; default) or every control step')
     parser.add_argument('--threads', type=int, help='torch CPU threads')
     parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     parser.add_argument('--json', type=Path, help='also write the results here')
@@ -165,30 +175,49 @@ def run_hierarchy(args) -> int:
     from hdp_planner.agent import NextBestPoseAgent
     from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, default_checkpoint
 
-    from .hierarchy_eval import AGENTS, PHRASINGS, evaluate, markdown_table
-    agents, tasks = _names(args.agents, AGENTS, 'agent'), _tasks(args.tasks)
+    from hdp_msgs_py.checkpoints import default_path
+
+    from .hierarchy_eval import AGENTS, FLAT_AGENTS, PHRASINGS, evaluate, markdown_table
+    agents, tasks = _names(args.agents, {**AGENTS, **FLAT_AGENTS}, 'agent'), _tasks(args.tasks)
     phrasings = _names('seen,heldout' if args.phrasings == 'both' else args.phrasings, PHRASINGS, 'phrasing')
     reach_tolerance = _reach_tolerance(args.reach_tolerance)
+    if args.flat_max_seconds <= 0:
+        raise SystemExit('--flat-max-seconds must be > 0')
     if args.threads:
         import torch
         torch.set_num_threads(args.threads)
-    agent_path = args.agent_checkpoint or default_checkpoint()
-    agent = NextBestPoseAgent.from_checkpoint(agent_path)
+    hierarchical = [name for name in agents if name in AGENTS]
+    agent = None
+    if hierarchical:
+        agent_path = args.agent_checkpoint or default_checkpoint()
+        agent = NextBestPoseAgent.from_checkpoint(agent_path)
     try:
         low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler, device=args.device)
-                      for name in agents}
+                      for name in hierarchical}
+        flat = {}
+        if any(name in FLAT_AGENTS for name in agents):
+            from hdp_planner.flat.policy import FlatPolicy
+            chosen = {'diffusion_policy': args.flat_diffusion_policy_checkpoint, 'act': args.flat_act_checkpoint}
+            flat = {name: FlatPolicy.from_checkpoint(chosen[name] or default_path(f'flat_{name}.pt'), args.device,
+                                                     policy=FLAT_AGENTS[name])
+                    for name in agents if name in FLAT_AGENTS}
     except ValueError as err:
         raise SystemExit(f'hdp eval hierarchy: {err}') from None
     min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     try:
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments,
-                           min_confidence=min_confidence, reach_tolerance=reach_tolerance)
+                           min_confidence=min_confidence, reach_tolerance=reach_tolerance, flat=flat,
+                           flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras)
     except ValueError as err:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1
     print(markdown_table(results))
     first, last = results['seeds']
     print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}")
+    if 'flat' in results:
+        print(f"flat rows: {results['flat']['max_seconds']:g} s budget, cameras {results['flat']['cameras']}, "
+              f"inference p50 (ms): {results['flat']['predict_ms_p50']}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
+

@@ -9,6 +9,16 @@ task's success condition, a planning failure, or the segment budget.
 Agents (Table 1 rows):  hdp = agent + RK-Diffuser, nbp_planner = agent +
 planner (PerAct + Planner), nbp_joint = agent + joint diffusion (PerAct +
 Diffuser). Every agent runs on the same seeds and instructions.
+
+The flat rows (FLAT_AGENTS: diffusion_policy, act; hdp_planner.flat) have no next-best poses:
+every control period (0.1 s) the policy is shown both cameras, the arm's joints and gripper,
+and the instruction, and answers with absolute joint targets and a gripper state; each target
+is streamed to the arm over one period, linearly interpolated per physics step as a joint
+trajectory controller interpolates a trajectory's points, the gripper commanded when it
+changes. The episode ends on success or after FLAT_MAX_SECONDS of sim time. Cameras: the
+demonstrations hold frames only where the expert came to rest, so by default ('rest') a new
+frame is rendered at the start and whenever the arm comes to rest after moving (the collector's
+rule), the last one shown otherwise; 'every' renders one every control step.
 """
 
 from __future__ import annotations
@@ -25,12 +35,18 @@ from hdp_planner import language
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.cameras import default_cameras
 from hdp_sim_bridge.tasks import TASKS
-from hdp_sim_bridge.world import PandaWorld
+from hdp_sim_bridge.world import TIME_STEP, PandaWorld
 
 from .low_level_eval import check_seed_hygiene, execute_segment, world_scene
 from .observation import front_points, segment_request
 
 AGENTS = {'hdp': 'rkd', 'nbp_planner': 'planner', 'nbp_joint': 'joint'}
+# The flat rows: name -> the hdp_planner.flat policy (and its checkpoint models/flat_<name>.pt).
+FLAT_AGENTS = {'diffusion_policy': 'diffusion_policy', 'act': 'act'}
+# s of sim time per flat episode: 2.5 x the longest demonstration (open_oven, ~12 s); the
+# hierarchical rows' budget is 8 segments, which their experts' 2-7 segments of 3-12 s fit.
+FLAT_MAX_SECONDS = 30.0
+FLAT_CAMERAS = ('rest', 'every')
 # seen: training phrasings; heldout: the one kept out of training; paraphrase: the paraphrase set
 # (other verbs, word orders, object names); nonsense: made-up words (below). Each set is a row of
 # the table, so `--phrasings seen,heldout,paraphrase` (or all) reports them side by side.
@@ -57,6 +73,18 @@ class HierarchyRecord:
     reach_errors: list = dataclasses.field(default_factory=list)   # (m, deg) plan end to NBP, per plan
     predict_times: list = dataclasses.field(default_factory=list)
     plan_times: list = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class FlatRecord(HierarchyRecord):
+    """A flat agent's episode: segments stays 0; control_steps periods ran, queries of the policy
+    (predict_times per query), camera_frames rendered and shown, sim_seconds simulated,
+    joint_travel_rad the arm's summed |joint change| per period."""
+    control_steps: int = 0
+    queries: int = 0
+    camera_frames: int = 0
+    sim_seconds: float = 0.0
+    joint_travel_rad: float = 0.0
 
 
 def episode_instruction(task_name: str, seed: int, variation: int, phrasing: str) -> str:
@@ -128,27 +156,108 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
     return record
 
 
+def execute_flat_step(world: PandaWorld, task, command: np.ndarray, target: np.ndarray, steps: int) -> np.ndarray:
+    """One control period of a flat policy: the gripper commanded if ``target[7]`` (+1 open, -1
+    closed) changes it, then the arm streamed from ``command`` (7,) to ``target[:7]`` over ``steps``
+    physics steps, linearly (a joint trajectory controller between two points). Returns the new command."""
+    goal_open = bool(target[7] > 0)
+    if goal_open != world.gripper_commanded_open:
+        world.command_gripper(goal_open)
+    goal = np.asarray(target[:7], dtype=float)
+    for j in range(steps):
+        world.command_arm(command + (j + 1) / steps * (goal - command))
+        world.step()
+        task.on_step(world)
+    return goal
+
+
+def run_flat_episode(name: str, policy, task_name: str, seed: int, phrasing: str = 'seen',
+                     max_seconds: float = FLAT_MAX_SECONDS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None,
+                     cameras_when: str = 'rest') -> FlatRecord:
+    """One closed-loop episode of a flat policy (hdp_planner.flat.FlatPolicy): the same scene and
+    instruction as run_episode's; see the module docstring."""
+    from hdp_planner.flat.policy import FlatObservation
+    if cameras_when not in FLAT_CAMERAS:
+        raise ValueError(f'cameras_when must be one of {FLAT_CAMERAS}, got {cameras_when!r}')
+    if world is None:
+        with PandaWorld() as own:
+            return run_flat_episode(name, policy, task_name, seed, phrasing, max_seconds, camera_size, own,
+                                    cameras_when)
+    task, _, variation = experts.reachable_scene(world, task_name, seed)
+    record = FlatRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
+    cameras = default_cameras(*camera_size)
+    policy.reset(record.instruction, seed)
+    period_steps = max(1, round(policy.control_period_s / TIME_STEP))
+    start, command = world.sim_time, world.joint_positions()
+    images, moved, queue = None, False, []
+    while world.sim_time - start < max_seconds - 1e-9:
+        q = world.joint_positions()
+        still = world.arm_reference_settled and np.max(np.abs(world.joint_velocities())) < experts.SETTLE_VELOCITY
+        moved = moved or not still
+        if images is None or cameras_when == 'every' or (still and moved):
+            images = {c: camera.render(world.client)[0] for c, camera in cameras.items()}
+            record.camera_frames += 1
+            moved = False
+        observation = FlatObservation(images, q, world.gripper_commanded_open, world.gripper_width())
+        if not queue:
+            started = time.perf_counter()
+            queue = list(policy.act(observation))
+            record.predict_times.append(time.perf_counter() - started)
+            record.queries += 1
+        else:
+            policy.observe(observation)
+        command = execute_flat_step(world, task, command, queue.pop(0), period_steps)
+        record.control_steps += 1
+        record.joint_travel_rad += float(np.abs(world.joint_positions() - q).sum())
+        if task.success(world):
+            record.success = True
+            break
+    else:
+        record.failure = 'time budget spent'
+    record.sim_seconds = round(world.sim_time - start, 3)
+    record.joint_travel_rad = round(record.joint_travel_rad, 4)
+    return record
+
+
 def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phrasings=('seen',),
              max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0,
-             reach_tolerance: tuple[float, float] | None = None) -> dict:
-    """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates."""
+             reach_tolerance: tuple[float, float] | None = None, flat: dict | None = None,
+             flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str = 'rest') -> dict:
+    """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates.
+
+    flat: name -> FlatPolicy, rows run by run_flat_episode (``agent`` may be None when there are
+    no hierarchical rows)."""
+    flat = flat or {}
     unknown = [t for t in tasks if t not in TASKS]
     if unknown or not tasks:
         raise ValueError(f'unknown task(s) {unknown}; tasks: {", ".join(TASKS)}')
     if episodes < 1 or seed_start < 0:
         raise ValueError(f'need episodes >= 1 and seed_start >= 0, got {episodes} and {seed_start}')
+    if set(flat) & set(low_levels) or not (flat or low_levels):
+        raise ValueError('need at least one agent row, each either hierarchical or flat')
+    if flat_cameras not in FLAT_CAMERAS or flat_max_seconds <= 0:
+        raise ValueError(f'flat_cameras must be one of {FLAT_CAMERAS} and flat_max_seconds > 0')
     seeds = range(seed_start, seed_start + episodes)
-    check_seed_hygiene({'the next-best-pose agent': agent, **low_levels}, tasks, seeds)
-    jobs = [(name, task, seed, phrasing) for name in low_levels for task in tasks for seed in seeds
+    check_seed_hygiene({**({'the next-best-pose agent': agent} if low_levels else {}), **low_levels, **flat},
+                       tasks, seeds)
+    rows = [*low_levels, *flat]
+    jobs = [(name, task, seed, phrasing) for name in rows for task in tasks for seed in seeds
             for phrasing in phrasings]
     records = []
     with PandaWorld() as world:
         for name, task, seed, phrasing in tqdm(jobs, desc='hierarchy episodes', unit='episode', disable=not progress):
+            if name in flat:
+                records.append(run_flat_episode(name, flat[name], task, seed, phrasing, flat_max_seconds,
+                                                world=world, cameras_when=flat_cameras))
+                continue
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
                                        world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance))
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
                'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'agents': {}}
-    for name in low_levels:
+    if flat:
+        results['flat'] = {'max_seconds': flat_max_seconds, 'cameras': flat_cameras,
+                           'control_period_s': {name: policy.control_period_s for name, policy in flat.items()}}
+    for name in rows:
         results['agents'][name] = {}
         for phrasing in phrasings:
             per_task = {}
@@ -157,8 +266,12 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
                 per_task[task] = {'success_rate': float(np.mean([r.success for r in mine])),
                                   'records': [dataclasses.asdict(r) for r in mine]}
             results['agents'][name][phrasing] = per_task
-    times = [t for r in records for t in r.predict_times]
+    times = [t for r in records if r.agent not in flat for t in r.predict_times]
     results['agent_predict_ms_p50'] = round(1000 * float(np.median(times)), 1) if times else None
+    for name in flat:
+        times = [t for r in records if r.agent == name for t in r.predict_times]
+        results['flat'].setdefault('predict_ms_p50', {})[name] = round(1000 * float(np.median(times)), 1) \
+            if times else None
     return results
 
 
