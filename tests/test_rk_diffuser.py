@@ -417,6 +417,10 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     bad = subprocess.run([*HDP, 'train', 'low-level', '--data', str(tmp_path), '--out', str(out)],
                          text=True, capture_output=True, timeout=120)
     assert bad.returncode != 0 and 'no successful episodes' in bad.stderr
+    missing = subprocess.run([*HDP, 'train', 'low-level', '--data', str(tmp_path / 'nowhere'), '--out', str(out)],
+                             text=True, capture_output=True, timeout=120)
+    assert missing.returncode != 0 and 'is not a directory of episodes' in missing.stderr
+    assert 'Traceback' not in missing.stderr
 
 
 def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path):

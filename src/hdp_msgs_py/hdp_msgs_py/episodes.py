@@ -300,7 +300,10 @@ def list_episodes(directory, successful_only: bool = True) -> list[Path]:
 
     With successful_only (the default), only bags whose metadata says
     success = true: failed or unmarked demos never reach training.
+    ValueError (every trainer's and evaluator's one-line refusal) when ``directory`` is not one.
     """
+    if not Path(directory).is_dir():
+        raise ValueError(f'{directory} is not a directory of episodes (hdp collect writes one)')
     bags = sorted(p for p in Path(directory).iterdir() if (p / 'metadata.yaml').is_file())
     if successful_only:
         bags = [p for p in bags if read_metadata(p).get('success') is True]

@@ -116,8 +116,8 @@ def run_eval(args) -> int:
         return 1
     try:
         dataset = KeyframeDataset.from_directory(args.data, args.cache)
-    except FileNotFoundError as err:
-        print(err, file=sys.stderr)
+    except (FileNotFoundError, ValueError) as err:
+        print(f'hdp eval high-level-offline: {err}', file=sys.stderr)
         return 1
     results = {}
     for phrasing, label in PHRASING_LABELS.items():
