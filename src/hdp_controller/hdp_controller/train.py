@@ -48,7 +48,7 @@ class TrainConfig:
     ema_decay: float = 0.995
     save_every: int = 500
     seed: int = 0
-    goal_augment: float = 0.0      # rad: dataset.perturb_goals' sigma (0: off, as the first releases)
+    goal_augment: float = 0.0      # rad: dataset.draw_augmentation's goal_sigma (0: off, as the first releases)
 
 
 def batch_rows(n: int, batch_size: int, seed: int, step: int) -> torch.Tensor:
