@@ -106,6 +106,31 @@ def test_failed_demos_are_marked(tmp_path):
     assert read_episode(tmp_path / 'reach_target_000001').metadata['success'] is False
 
 
+def test_camera_rate_adds_frames_between_rests(tmp_path):
+    """--camera-rate 10: a frame every 0.1 s of sim time besides the rests, the same demonstration
+    (joint states identical to a rests-only recording of the seed), and the keyframes unchanged."""
+    result = subprocess.run([*HDP, 'collect', '--tasks', 'reach_target', '--episodes', '1', '--seed-start', '4',
+                             '--out', str(tmp_path / 'dense'), '--width', '32', '--height', '24',
+                             '--camera-rate', '10'], text=True, capture_output=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    with PandaWorld() as world:
+        record_episode(world, 'reach_target', 4, tmp_path / 'sparse', 32, 24)
+    dense = read_episode(tmp_path / 'dense' / 'reach_target_000004')
+    sparse = read_episode(tmp_path / 'sparse' / 'reach_target_000004')
+    assert dense.metadata['camera_rate_hz'] == 10 and sparse.metadata['camera_rate_hz'] == 0
+    assert np.array_equal(dense.joint_states.position, sparse.joint_states.position)
+    assert dense.keyframes() == sparse.keyframes()
+    frames = dense.image_stamps['/camera/front/color/image_raw'] / 1e9
+    rests = sparse.image_stamps['/camera/front/color/image_raw'] / 1e9
+    assert all(np.min(np.abs(frames - t)) < 1e-6 for t in rests)              # every rest frame is kept
+    steady = np.arange(0.1, dense.joint_states.t[-1] - 0.05, 0.1)
+    assert all(np.min(np.abs(frames - t)) < 1 / 240 + 1e-6 for t in steady)  # and one every 0.1 s
+    assert len(frames) >= len(steady) + len(rests) - 2
+    bad = subprocess.run([*HDP, 'collect', '--tasks', 'reach_target', '--episodes', '1', '--out',
+                          str(tmp_path / 'bad'), '--camera-rate', '-1'], text=True, capture_output=True, timeout=120)
+    assert bad.returncode != 0 and '--camera-rate' in bad.stderr
+
+
 def test_render_writes_pngs(tmp_path):
     result = subprocess.run([*HDP, 'render', '--task', 'open_box', '--seed', '2', '--out', str(tmp_path),
                              '--width', '80', '--height', '60'], text=True, capture_output=True, timeout=120)

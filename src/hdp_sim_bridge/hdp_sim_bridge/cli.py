@@ -25,6 +25,9 @@ def configure_collect(parser) -> None:
     parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1)')
     parser.add_argument('--width', type=int, default=640, help='camera width (default 640)')
     parser.add_argument('--height', type=int, default=480, help='camera height (default 480)')
+    parser.add_argument('--camera-rate', type=float, default=0.0, metavar='HZ',
+                        help='also record both cameras at this rate of sim time between rests, as the flat '
+                             'baselines need (default 0: at the start and at rests only, where keyframes are)')
     parser.add_argument('--json', type=Path, help='also write the summaries here')
     parser.set_defaults(func=run_collect)
 
@@ -33,15 +36,15 @@ def run_collect(args) -> int:
     from tqdm import tqdm
 
     from .collect import collect, summary_table
-    if args.episodes < 1 or args.workers < 1:
-        raise SystemExit('--episodes and --workers must be >= 1')
+    if args.episodes < 1 or args.workers < 1 or args.camera_rate < 0:
+        raise SystemExit('--episodes and --workers must be >= 1 and --camera-rate >= 0')
     tasks = _tasks(args.tasks)
     start = time.monotonic()
     summaries = []
     try:
         with tqdm(total=len(tasks) * args.episodes, unit='episode') as bar:
             for summary in collect(tasks, args.episodes, args.seed_start, args.out, args.workers,
-                                   args.width, args.height):
+                                   args.width, args.height, args.camera_rate):
                 summaries.append(summary)
                 bar.set_postfix_str(f'{summary.task} seed {summary.seed}: '
                                     f'{"ok" if summary.success else "FAILED"}')

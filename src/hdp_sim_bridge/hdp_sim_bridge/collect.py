@@ -4,7 +4,9 @@ One episode = one (task, seed): the seed fixes the scene, the variation and
 the phrasing, so the same seed always gives the same demonstration. Joint
 states go in at 120 Hz of sim time; both cameras (colour, depth, camera
 info) at the first frame and whenever the expert rests at a waypoint, which
-is where keyframes are found; /tf_static and the instruction at the start.
+is where keyframes are found, and with ``camera_rate`` also at that rate of
+sim time in between (what a flat policy sees: it acts between keyframes);
+/tf_static and the instruction at the start.
 """
 
 from __future__ import annotations
@@ -75,15 +77,19 @@ def write_cameras(writer: EpisodeWriter, world, cameras: dict, sim_seconds: floa
 
 
 def record_episode(world: PandaWorld, task_name: str, seed: int, out_dir: Path,
-                   width: int = 640, height: int = 480) -> EpisodeSummary:
-    """Reset the world to (task, seed), run the expert, write the bag; never raises on task failure."""
+                   width: int = 640, height: int = 480, camera_rate: float = 0.0) -> EpisodeSummary:
+    """Reset the world to (task, seed), run the expert, write the bag; never raises on task failure.
+
+    camera_rate: Hz of sim time at which both cameras are also recorded between rests (0: rests only).
+    """
     start = time.monotonic()
     task, rng, variation = reachable_scene(world, task_name, seed)
     instruction = task.instruction(rng)
     cameras = default_cameras(width, height)
     path = out_dir / episode_name(task_name, seed)
     metadata = {'task': task_name, 'variation': variation, 'seed': seed, 'instruction': instruction,
-                'camera_resolution': [width, height], 'source': 'hdp_sim_bridge scripted expert'}
+                'camera_resolution': [width, height], 'camera_rate_hz': camera_rate,
+                'source': 'hdp_sim_bridge scripted expert'}
     with EpisodeWriter(path, metadata) as writer:
         t0 = world.sim_time
         writer.write(topics.TF_STATIC, TFMessage(transforms=[c.transform_stamped() for c in cameras.values()]), 0)
@@ -91,12 +97,16 @@ def record_episode(world: PandaWorld, task_name: str, seed: int, out_dir: Path,
         writer.write(topics.JOINT_STATES, joint_state(world, 0.0), 0)
         write_cameras(writer, world, cameras, 0.0)
         steps = [0]
+        next_frame = [1.0 / camera_rate if camera_rate > 0 else float('inf')]
 
         def on_step():
             steps[0] += 1
+            t = world.sim_time - t0
             if steps[0] % JOINT_STATE_EVERY == 0:
-                t = world.sim_time - t0
                 writer.write(topics.JOINT_STATES, joint_state(world, t), int(round(t * 1e9)))
+            if t >= next_frame[0] - 1e-9:
+                write_cameras(writer, world, cameras, t)
+                next_frame[0] += 1.0 / camera_rate
 
         def on_rest():
             write_cameras(writer, world, cameras, world.sim_time - t0)
@@ -119,19 +129,21 @@ _world: PandaWorld | None = None
 def _work(job) -> EpisodeSummary:
     """One episode in a worker process, which keeps its world between episodes."""
     global _world
-    task_name, seed, out_dir, width, height = job
+    task_name, seed, out_dir, width, height, camera_rate = job
     if _world is None:
         _world = PandaWorld()
-    return record_episode(_world, task_name, seed, Path(out_dir), width, height)
+    return record_episode(_world, task_name, seed, Path(out_dir), width, height, camera_rate)
 
 
 def collect(tasks: list[str], episodes: int, seed_start: int, out_dir: Path, workers: int = 1,
-            width: int = 640, height: int = 480, progress=None):
+            width: int = 640, height: int = 480, camera_rate: float = 0.0):
     """Record ``episodes`` per task with seeds seed_start.. ; yields summaries as they finish."""
+    if camera_rate < 0:
+        raise ValueError(f'camera_rate must be >= 0 Hz, got {camera_rate}')
     for name in tasks:
         make_task(name)           # unknown names fail before any work starts
     out_dir.mkdir(parents=True, exist_ok=True)
-    jobs = [(name, seed, str(out_dir), width, height)
+    jobs = [(name, seed, str(out_dir), width, height, camera_rate)
             for name in tasks for seed in range(seed_start, seed_start + episodes)]
     clashes = [j for j in jobs if (out_dir / episode_name(j[0], j[1])).exists()]
     if clashes:
