@@ -257,6 +257,23 @@ def test_train_flat_cli(episodes, tmp_path, name):
     assert refused.returncode != 0 and 'unknown key horizn' in refused.stderr and not refused.stdout
 
 
+def test_dense_camera_episodes_train_a_policy_shown_every_frame(tmp_path):
+    """Episodes recorded with --camera-rate 10: every control step has its own frame, the checkpoint
+    records the rate, and the policy asks the harness for a frame every control step."""
+    out = tmp_path / 'dense'
+    result = subprocess.run([*HDP, 'collect', '--tasks', 'reach_target', '--episodes', '1', '--seed-start', '11',
+                             '--out', str(out), '--width', '32', '--height', '24', '--camera-rate', '10'],
+                            text=True, capture_output=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    data = _dataset(out, DP, tmp_path)
+    frames = data.episodes[0]['frame_index']
+    assert data.camera_rate_hz() == 10 and len(set(frames[1:-1].tolist())) == len(frames) - 2   # one per step
+    train('act', out, tmp_path / 'act.pt', ACT, FlatTrainConfig(steps=1, batch=2, warmup=1),
+          cache=tmp_path / 'cache', log=lambda *_: None, progress=False)
+    policy = FlatPolicy.from_checkpoint(tmp_path / 'act.pt')
+    assert policy.data_camera_rate_hz == 10 and policy.cameras_as_trained == 'every'
+
+
 # --- the harness ----------------------------------------------------------------------------
 
 def test_harness_runs_the_flat_rows(checkpoints):
@@ -273,7 +290,8 @@ def test_harness_runs_the_flat_rows(checkpoints):
         per_query = policy.config.n_action_steps
         assert record['queries'] == -(-record['control_steps'] // per_query) == len(record['predict_times'])
         assert record['joint_travel_rad'] > 0.01                  # the arm moved
-    assert results['flat']['max_seconds'] == 1.0 and results['flat']['cameras'] == 'rest'
+    assert results['flat']['max_seconds'] == 1.0
+    assert results['flat']['cameras'] == {'diffusion_policy': 'rest', 'act': 'rest'}     # as trained
     assert '| act | seen |' in markdown_table(results)
     # 'every' renders a frame each control step.
     record = run_flat_episode('act', policies['act'], 'reach_target', 1000, max_seconds=0.3, cameras_when='every')

@@ -148,9 +148,10 @@ def configure_hierarchy(parser) -> None:
                         help='the act row (default: models/flat_act.pt, $HDP_MODELS_DIR)')
     parser.add_argument('--flat-max-seconds', type=float, default=30.0,
                         help="the flat rows' budget per episode, s of sim time (default 30)")
-    parser.add_argument('--flat-cameras', choices=('rest', 'every'), default='rest',
-                        help='when the flat rows get a new camera frame: rest (at the start and whenever the '
-                             'arm comes to rest, as the demonstrations hold them; default) or every control step')
+    parser.add_argument('--flat-cameras', choices=('rest', 'every'),
+                        help='when the flat rows get a new camera frame: every control step, or rest (at the '
+                             'start and whenever the arm comes to rest); default: as each policy\'s training '
+                             'episodes held them (every with `hdp collect --camera-rate 10`)')
     parser.add_argument('--threads', type=int, help='torch CPU threads')
     parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     parser.add_argument('--json', type=Path, help='also write the results here')
@@ -215,7 +216,8 @@ def run_hierarchy(args) -> int:
     first, last = results['seeds']
     print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}")
     if 'flat' in results:
-        print(f"flat rows: {results['flat']['max_seconds']:g} s budget, cameras {results['flat']['cameras']}, "
+        cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
+        print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "
               f"inference p50 (ms): {results['flat']['predict_ms_p50']}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))

@@ -15,10 +15,11 @@ every control period (0.1 s) the policy is shown both cameras, the arm's joints 
 and the instruction, and answers with absolute joint targets and a gripper state; each target
 is streamed to the arm over one period, linearly interpolated per physics step as a joint
 trajectory controller interpolates a trajectory's points, the gripper commanded when it
-changes. The episode ends on success or after FLAT_MAX_SECONDS of sim time. Cameras: the
-demonstrations hold frames only where the expert came to rest, so by default ('rest') a new
-frame is rendered at the start and whenever the arm comes to rest after moving (the collector's
-rule), the last one shown otherwise; 'every' renders one every control step.
+changes. The episode ends on success or after FLAT_MAX_SECONDS of sim time. Cameras: by
+default each policy sees them as its training episodes held them (FlatPolicy.cameras_as_trained):
+'every' renders a frame every control step (episodes recorded with `hdp collect --camera-rate
+10`); 'rest' renders one at the start and whenever the arm comes to rest after moving (the
+collector's rule without a camera rate), the last one shown otherwise.
 """
 
 from __future__ import annotations
@@ -222,7 +223,7 @@ def run_flat_episode(name: str, policy, task_name: str, seed: int, phrasing: str
 def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phrasings=('seen',),
              max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0,
              reach_tolerance: tuple[float, float] | None = None, flat: dict | None = None,
-             flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str = 'rest') -> dict:
+             flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str | None = None) -> dict:
     """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates.
 
     flat: name -> FlatPolicy, rows run by run_flat_episode (``agent`` may be None when there are
@@ -235,8 +236,10 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
         raise ValueError(f'need episodes >= 1 and seed_start >= 0, got {episodes} and {seed_start}')
     if set(flat) & set(low_levels) or not (flat or low_levels):
         raise ValueError('need at least one agent row, each either hierarchical or flat')
-    if flat_cameras not in FLAT_CAMERAS or flat_max_seconds <= 0:
-        raise ValueError(f'flat_cameras must be one of {FLAT_CAMERAS} and flat_max_seconds > 0')
+    if flat_cameras not in (None, *FLAT_CAMERAS) or flat_max_seconds <= 0:
+        raise ValueError(f'flat_cameras must be one of {FLAT_CAMERAS} (None: as each policy was trained) '
+                         'and flat_max_seconds > 0')
+    cameras_when = {name: flat_cameras or policy.cameras_as_trained for name, policy in flat.items()}
     seeds = range(seed_start, seed_start + episodes)
     check_seed_hygiene({**({'the next-best-pose agent': agent} if low_levels else {}), **low_levels, **flat},
                        tasks, seeds)
@@ -248,14 +251,14 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
         for name, task, seed, phrasing in tqdm(jobs, desc='hierarchy episodes', unit='episode', disable=not progress):
             if name in flat:
                 records.append(run_flat_episode(name, flat[name], task, seed, phrasing, flat_max_seconds,
-                                                world=world, cameras_when=flat_cameras))
+                                                world=world, cameras_when=cameras_when[name]))
                 continue
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
                                        world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance))
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
                'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'agents': {}}
     if flat:
-        results['flat'] = {'max_seconds': flat_max_seconds, 'cameras': flat_cameras,
+        results['flat'] = {'max_seconds': flat_max_seconds, 'cameras': cameras_when,
                            'control_period_s': {name: policy.control_period_s for name, policy in flat.items()}}
     for name in rows:
         results['agents'][name] = {}

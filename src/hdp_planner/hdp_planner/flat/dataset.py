@@ -11,11 +11,13 @@ robomimic tasks); an episode of T seconds gives T / 0.1 control steps (our demon
   steps k + 1 .. k + horizon, the last one repeated past the episode's end (``is_pad`` marks
   those), as Diffusion Policy pads and ACT masks.
 
-The recorded episodes hold joint states at 120 Hz but camera frames only at the first frame and
-whenever the expert rests at a waypoint (hdp collect writes them where keyframes are found), so
-the image of step k is the latest frame at or before it: the scene as last seen at rest, the arm
-in it where it last stopped. Proprioception is always current. The harness
-(hdp_eval.hierarchy_eval) shows the policies their cameras by the same rule by default.
+The recorded episodes hold joint states at 120 Hz; the image of step k is the latest camera frame
+at or before it. Episodes recorded with `hdp collect --camera-rate 10` (or faster) hold a frame
+every control step, so the image is current; plain ones hold frames only at the first frame and
+where the expert rests (where keyframes are found), so the image shows the scene as last seen at
+rest, the arm in it where it last stopped. Proprioception is always current. The checkpoint
+records the lowest camera rate of its episodes and the harness (hdp_eval.hierarchy_eval) shows
+the policy its cameras at that rate by default.
 
 Decoding bags is slow, so each episode's flat arrays are cached as one npz under
 ``<data>_flat_cache``, keyed by the bag's files (size, mtime), the image size and the period.
@@ -35,7 +37,7 @@ from hdp_msgs_py.episodes import list_episodes, read_episode
 from .. import language
 from ..model import proprio_vector
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 CONTROL_PERIOD_S = 0.1            # the flat policies' control step (10 Hz)
 CAMERAS = topics.CAMERAS          # ('front', 'side')
 PROPRIO_DIM = 9                   # gripper open +-1, 7 scaled joints, gripper width scaled to [-1, 1]
@@ -70,7 +72,8 @@ def episode_flat_samples(episode, width: int, height: int, period: float = CONTR
     """One episode at the flat rate, K control steps:
     joint_positions (K, 7) float32, gripper_open (K,) bool, gripper_width (K,) float32 at each step;
     frame_index (K,) the latest camera frame at or before each step; images_<camera> (F, height, width, 3)
-    uint8 for every frame; plus task, variation, seed."""
+    uint8 for every frame; plus task, variation, seed and camera_rate_hz (the recording's rate of frames
+    between rests, 0: rests only)."""
     from ..dataset import camera_frames
     js = episode.joint_states
     count = int(np.floor((js.t[-1] - js.t[0]) / period + 1e-9)) + 1
@@ -89,6 +92,7 @@ def episode_flat_samples(episode, width: int, height: int, period: float = CONTR
         'task': np.array(episode.metadata['task']),
         'variation': np.array(int(episode.metadata.get('variation', 0))),
         'seed': np.array(int(episode.metadata.get('seed', -1))),
+        'camera_rate_hz': np.array(float(episode.metadata.get('camera_rate_hz', 0.0))),
     }
     for camera in CAMERAS:
         samples[f'images_{camera}'] = np.stack([downscale(frame[camera][0], width, height) for _, frame in frames])
@@ -175,6 +179,10 @@ class FlatDataset:
         for episode in self.episodes:
             seeds.setdefault(str(episode['task']), set()).add(int(episode['seed']))
         return {task: sorted(s) for task, s in sorted(seeds.items())}
+
+    def camera_rate_hz(self) -> float:
+        """The lowest camera rate between rests over the episodes (0: some hold frames at rests only)."""
+        return min(float(e['camera_rate_hz']) for e in self.episodes)
 
     def action_range(self) -> tuple[np.ndarray, np.ndarray]:
         """(low (8,), high (8,)) of the actions over every episode: each joint's min and max, the gripper's

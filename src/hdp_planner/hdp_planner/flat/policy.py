@@ -45,8 +45,10 @@ class _History(NamedTuple):
 
 class FlatPolicy:
 
-    def __init__(self, name: str, model, device='cpu', training_seeds: dict | None = None, seed: int = 0):
+    def __init__(self, name: str, model, device='cpu', training_seeds: dict | None = None, seed: int = 0,
+                 data_camera_rate_hz: float = 0.0):
         self.name = name
+        self.data_camera_rate_hz = data_camera_rate_hz   # frames between rests in its training episodes
         self.model = model.to(device).eval()
         self.config = model.config
         self.device = device
@@ -59,11 +61,21 @@ class FlatPolicy:
         """The policy of a checkpoint written by `hdp train flat`; CheckpointError if it is not one
         (or not of ``policy``)."""
         stored = checkpoint.load(path, policy)
-        return cls(stored['policy'], checkpoint.build_model(stored, path), device, stored['training_seeds'])
+        rate = stored['config'].get('train', {}).get('data_camera_rate_hz', 0.0)
+        if not isinstance(rate, (int, float)) or not 0 <= rate < 1e4:
+            raise checkpoint.CheckpointError(f'{path}: data_camera_rate_hz must be a rate in Hz, got {rate!r}')
+        return cls(stored['policy'], checkpoint.build_model(stored, path), device, stored['training_seeds'],
+                   data_camera_rate_hz=float(rate))
 
     @property
     def control_period_s(self) -> float:
         return float(self.config.control_period_s)
+
+    @property
+    def cameras_as_trained(self) -> str:
+        """'every' when its training episodes held a frame every control step, else 'rest' (frames at
+        the start and at rests): when the harness should show it new frames by default."""
+        return 'every' if self.data_camera_rate_hz * self.control_period_s >= 1 - 1e-6 else 'rest'
 
     def reset(self, instruction: str, seed: int | None = None) -> None:
         """A new episode: forget the observations and chunks; sampling noise from ``seed``."""

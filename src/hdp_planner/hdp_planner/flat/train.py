@@ -109,7 +109,7 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
     torch.manual_seed(train_config.seed)            # the initial weights
     model = checkpoint.build_network(policy, model_config).to(device)
     compared = {k: v for k, v in dataclasses.asdict(train_config).items() if k not in ('save_every', 'val_every')}
-    recorded = {'data': str(Path(data).resolve()), **compared}
+    recorded = {'data': str(Path(data).resolve()), 'data_camera_rate_hz': dataset.camera_rate_hz(), **compared}
     decay, no_decay = [], []
     for name, parameter in model.named_parameters():
         (no_decay if parameter.ndim < 2 else decay).append(parameter)
@@ -138,7 +138,8 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
         model.normaliser.fit(*dataset.action_range())
     training_seeds = dataset.training_seeds()
     per_task = ', '.join(f'{t}: {(dataset.tasks == t).sum()}' for t in np.unique(dataset.tasks))
-    log(f'{policy}: {len(dataset)} training samples at {1 / model_config.control_period_s:g} Hz ({per_task})'
+    log(f'{policy}: {len(dataset)} training samples at {1 / model_config.control_period_s:g} Hz ({per_task}), '
+        f'camera frames {f"at {dataset.camera_rate_hz():g} Hz" if dataset.camera_rate_hz() else "at rests only"}'
         f'{f"; {len(val)} validation samples" if val else ""}; '
         f'{sum(p.numel() for p in model.parameters() if p.requires_grad):,} trained parameters')
     model.train()
