@@ -1,4 +1,4 @@
-"""The six tasks of the paper's Table 1, built procedurally in PyBullet.
+"""The eleven tasks of the paper's Table 1, built procedurally in PyBullet.
 
 A task places its objects at a random pose in front of the robot, gives an
 instruction in one of several phrasings, checks success the way RLBench does,

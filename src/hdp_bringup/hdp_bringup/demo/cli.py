@@ -54,7 +54,7 @@ def configure(parser) -> None:
     2 on bad arguments or a refused instruction, 130 on Ctrl-C; the nodes are stopped on every exit.
     """
     parser.add_argument('--task', required=True, metavar='TASK',
-                        help='e.g. reach_target or open_drawer (an unknown name lists the six tasks)')
+                        help='e.g. reach_target or open_drawer (an unknown name lists the eleven tasks)')
     parser.add_argument('--instruction', default=None,
                         help="what to say (default: the episode's own instruction for the task and seed)")
     parser.add_argument('--seed', type=int, default=DEFAULT_SEED,
