@@ -257,6 +257,33 @@ def test_train_flat_cli(episodes, tmp_path, name):
     assert refused.returncode != 0 and 'unknown key horizn' in refused.stderr and not refused.stdout
 
 
+def test_harness_under_torchrun_shards_episodes_and_writes_one_result(checkpoints, tmp_path):
+    """Two processes take every other episode; rank 0 prints one table and writes every record, in the
+    order one process writes them, with the same outcomes (flat policies draw their noise per episode)."""
+    import json
+    import os
+    args = ['eval', 'hierarchy', '--agents', 'diffusion_policy,act', '--tasks', 'reach_target', '--episodes', '2',
+            '--seed-start', '1000', '--phrasings', 'seen,heldout', '--flat-max-seconds', '0.5',
+            '--flat-diffusion-policy-checkpoint', str(checkpoints['diffusion_policy']),
+            '--flat-act-checkpoint', str(checkpoints['act'])]
+    one = subprocess.run([*HDP, *args, '--json', str(tmp_path / 'one.json')], text=True, capture_output=True,
+                         timeout=600)
+    assert one.returncode == 0, one.stderr[-3000:]
+    env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
+    two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
+                          '-m', 'hdp_msgs_py.cli.main', *args, '--json', str(tmp_path / 'two.json')],
+                         text=True, capture_output=True, timeout=600, env=env)
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert two.stdout.count('| agent |') == 1 and '2 process(es)' in two.stdout
+    single, split = (json.loads((tmp_path / f'{n}.json').read_text()) for n in ('one', 'two'))
+    assert (single['processes'], split['processes']) == (1, 2)
+
+    def records(results):
+        return [(r['agent'], r['seed'], r['phrasing'], r['control_steps'], r['joint_travel_rad'])
+                for rows in results['agents'].values() for tasks in rows.values() for r in tasks['reach_target']['records']]
+    assert len(records(split)) == 8 and records(split) == records(single)
+
+
 def test_dense_camera_episodes_train_a_policy_shown_every_frame(tmp_path):
     """Episodes recorded with --camera-rate 10: every control step has its own frame, the checkpoint
     records the rate, and the policy asks the harness for a frame every control step."""

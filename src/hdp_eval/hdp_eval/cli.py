@@ -118,7 +118,9 @@ def run_plot(args) -> int:
 
 
 def configure_hierarchy(parser) -> None:
-    """Closed-loop evaluation of the whole hierarchy in the sim, like the paper's Table 1."""
+    """Closed-loop evaluation of the whole hierarchy in the sim, like the paper's Table 1. Under torchrun
+    (torchrun --nproc-per-node N -m hdp_msgs_py.cli.main eval hierarchy ...) each process runs every
+    N-th episode and rank 0 prints the table and writes the one result file."""
     parser.add_argument('--agents', default='hdp,nbp_planner,nbp_joint',
                         help='comma-separated: hdp (agent + RK-Diffuser), nbp_planner (agent + planner), '
                              'nbp_joint (agent + joint diffusion), and the flat baselines diffusion_policy '
@@ -172,6 +174,8 @@ def _reach_tolerance(text: str | None) -> tuple[float, float] | None:
 
 
 def run_hierarchy(args) -> int:
+    import torch
+
     from hdp_controller.policy import load_policy
     from hdp_planner.agent import NextBestPoseAgent
     from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, default_checkpoint
@@ -185,7 +189,6 @@ def run_hierarchy(args) -> int:
     if args.flat_max_seconds <= 0:
         raise SystemExit('--flat-max-seconds must be > 0')
     if args.threads:
-        import torch
         torch.set_num_threads(args.threads)
     hierarchical = [name for name in agents if name in AGENTS]
     agent = None
@@ -212,9 +215,12 @@ def run_hierarchy(args) -> int:
     except ValueError as err:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1
+    if results['processes'] > 1 and torch.distributed.get_rank() != 0:
+        return 0
     print(markdown_table(results))
     first, last = results['seeds']
-    print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}")
+    print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}; "
+          f"{results['wall_s'] / 60:.1f} min, {results['processes']} process(es)")
     if 'flat' in results:
         cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
         print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "

@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from hdp_controller.controller_logic import reach_error
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
+from hdp_msgs_py import distributed
 from hdp_planner import language
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.cameras import default_cameras
@@ -246,17 +247,26 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
     rows = [*low_levels, *flat]
     jobs = [(name, task, seed, phrasing) for name in rows for task in tasks for seed in seeds
             for phrasing in phrasings]
+    start = time.monotonic()
+    # Under torchrun each process takes every world-th episode; all gather every record.
+    rank, world_size, _ = distributed.start()
     records = []
     with PandaWorld() as world:
-        for name, task, seed, phrasing in tqdm(jobs, desc='hierarchy episodes', unit='episode', disable=not progress):
+        for name, task, seed, phrasing in tqdm(jobs[rank::world_size], desc='hierarchy episodes', unit='episode',
+                                               disable=not progress or rank > 0):
             if name in flat:
                 records.append(run_flat_episode(name, flat[name], task, seed, phrasing, flat_max_seconds,
                                                 world=world, cameras_when=cameras_when[name]))
                 continue
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
                                        world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance))
+    if world_size > 1:
+        order = {job: i for i, job in enumerate(jobs)}
+        records = sorted((r for part in distributed.gather(records, world_size) for r in part),
+                         key=lambda r: order[(r.agent, r.task, r.seed, r.phrasing)])
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
-               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'agents': {}}
+               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'processes': world_size,
+               'agents': {}}
     if flat:
         results['flat'] = {'max_seconds': flat_max_seconds, 'cameras': cameras_when,
                            'control_period_s': {name: policy.control_period_s for name, policy in flat.items()}}
@@ -275,6 +285,7 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
         times = [t for r in records if r.agent == name for t in r.predict_times]
         results['flat'].setdefault('predict_ms_p50', {})[name] = round(1000 * float(np.median(times)), 1) \
             if times else None
+    results['wall_s'] = round(time.monotonic() - start, 1)
     return results
 
 
