@@ -217,7 +217,8 @@ def test_argument_problems_are_found_before_anything_starts(tmp_path):
     for args, problem in ((('--task', 'open_door'), "unknown task 'open_door'; tasks: reach_target, open_drawer"),
                           (('--episodes', '0'), '--episodes >= 1'), (('--seed', '-1'), '--seed must be >= 0'),
                           (('--timeout', '0'), '--timeout > 0'), (('--instruction', '  '), '--instruction is empty'),
-                          (('--params-file', str(tmp_path / 'no.yaml')), 'no parameter file')):
+                          (('--params-file', str(tmp_path / 'no.yaml')), 'no parameter file'),
+                          (('--instruction', 'open it', '--phrasing', 'seen'), 'exclude each other')):
         assert problem in cli.argument_problem(_parse('--task', 'reach_target', *args), tasks), args
     with pytest.raises(SystemExit) as exit_:
         _parse('--task', 'reach_target', '--method', 'teleport')

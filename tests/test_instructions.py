@@ -34,6 +34,23 @@ def test_the_last_phrasing_is_held_out_of_training():
         assert len(language.heldout_phrasings(name)) == 1
 
 
+def test_evaluation_instructions_are_the_seeds_draw_from_each_phrasing_set():
+    """What the harness and `hdp demo --phrasing` say on a seed: the same text for the same
+    (task, seed, variation, phrasing), drawn from that set's templates only."""
+    from hdp_eval.hierarchy_eval import episode_instruction
+    for task, variation in (('reach_target', 4), ('open_drawer', 2), ('open_oven', 0)):
+        sets = {'seen': language.training_phrasings(task), 'heldout': language.heldout_phrasings(task),
+                'paraphrase': language.paraphrase_phrasings(task)}
+        for phrasing, templates in sets.items():
+            texts = {instructions.evaluation_instruction(task, seed, variation, phrasing) for seed in range(1000, 1040)}
+            allowed = {t.format(*[instructions.TASKS[task].variations[variation]] * t.count('{}')) for t in templates}
+            assert texts == allowed                    # 40 seeds draw every template of the set, nothing else
+            assert instructions.evaluation_instruction(task, 1003, variation, phrasing) == \
+                episode_instruction(task, 1003, variation, phrasing)
+    with pytest.raises(ValueError, match="unknown phrasing 'nonsense'"):
+        instructions.evaluation_instruction('reach_target', 1000, 0, 'nonsense')
+
+
 def test_task_lists_by_name_group_or_comma_list():
     assert instructions.task_names('all') == list(instructions.TASKS) and len(instructions.TASKS) == 11
     assert instructions.task_names('first_six') == ['reach_target', 'pick_up_cup', 'open_drawer', 'open_box',

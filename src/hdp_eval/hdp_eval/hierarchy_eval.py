@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from hdp_controller.controller_logic import reach_error
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
-from hdp_msgs_py import distributed
+from hdp_msgs_py import distributed, instructions
 from hdp_planner import language
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.cameras import default_cameras
@@ -52,8 +52,7 @@ FLAT_CAMERAS = ('rest', 'every')
 # seen: training phrasings; heldout: the one kept out of training; paraphrase: the paraphrase set
 # (other verbs, word orders, object names); nonsense: made-up words (below). Each set is a row of
 # the table, so `--phrasings seen,heldout,paraphrase` (or all) reports them side by side.
-PHRASINGS = ('seen', 'heldout', 'paraphrase', 'nonsense')
-TEMPLATES = {'heldout': language.heldout_phrasings, 'paraphrase': language.paraphrase_phrasings}
+PHRASINGS = (*instructions.EVALUATION_PHRASINGS, 'nonsense')
 # Made-up words for 'nonsense' instructions: one word of the task's own instruction is kept, so
 # the planner's vocabulary check lets them through and only the agent's confidence can refuse.
 PSEUDO_WORDS = ('blick', 'zorf', 'quib', 'flom', 'trask', 'wunt', 'glimp', 'sprov', 'dax', 'vurl')
@@ -94,8 +93,7 @@ def episode_instruction(task_name: str, seed: int, variation: int, phrasing: str
     paraphrase, or 'nonsense': the seen one with every word but one content word made up."""
     if phrasing not in PHRASINGS:
         raise ValueError(f'unknown phrasing {phrasing!r}; phrasings: {", ".join(PHRASINGS)}')
-    templates = TEMPLATES.get(phrasing, language.training_phrasings)(task_name)
-    text = language.instruction(task_name, variation, templates, np.random.default_rng(seed))
+    text = instructions.evaluation_instruction(task_name, seed, variation, 'seen' if phrasing == 'nonsense' else phrasing)
     return nonsense(text, np.random.default_rng([seed, 1])) if phrasing == 'nonsense' else text
 
 

@@ -99,3 +99,18 @@ def instruction(task: str, variation: int, phrasings, rng: np.random.Generator) 
     """An instruction for ``variation`` of ``task`` in one of ``phrasings``, drawn with ``rng``."""
     template = rng.choice(list(phrasings))
     return template.format(*[TASKS[task].variations[variation]] * template.count('{}'))
+
+
+EVALUATION_PHRASINGS = ('seen', 'heldout', 'paraphrase')
+
+
+def evaluation_instruction(task: str, seed: int, variation: int, phrasing: str = 'seen') -> str:
+    """The instruction of evaluation episode (task, seed), drawn with a generator seeded by the seed
+    from the task's training phrasings ('seen': all but the last), its held-out one ('heldout') or
+    its paraphrases: what `hdp eval hierarchy` and `hdp demo --phrasing` say, so both run the same."""
+    language = TASKS[task]
+    templates = {'seen': language.phrasings[:-1], 'heldout': language.phrasings[-1:],
+                 'paraphrase': language.paraphrases}
+    if phrasing not in templates:
+        raise ValueError(f'unknown phrasing {phrasing!r}; phrasings: {", ".join(EVALUATION_PHRASINGS)}')
+    return instruction(task, variation, templates[phrasing], np.random.default_rng(seed))

@@ -57,6 +57,9 @@ def configure(parser) -> None:
                         help='e.g. reach_target or open_drawer (an unknown name lists the eleven tasks)')
     parser.add_argument('--instruction', default=None,
                         help="what to say (default: the episode's own instruction for the task and seed)")
+    parser.add_argument('--phrasing', choices=('seen', 'heldout', 'paraphrase'), default=None,
+                        help='say what `hdp eval hierarchy --phrasings P` says on each seed (a training phrasing, '
+                             'the held-out one or a paraphrase), to compare the graph with the harness')
     parser.add_argument('--seed', type=int, default=DEFAULT_SEED,
                         help=f'scene seed (default {DEFAULT_SEED}: evaluation seeds, never trained on)')
     parser.add_argument('--episodes', type=int, default=1,
@@ -86,6 +89,8 @@ def argument_problem(args, tasks) -> str | None:
         return f'unknown task {args.task!r}; tasks: {", ".join(tasks)}'
     if args.instruction is not None and not args.instruction.strip():
         return '--instruction is empty'
+    if args.instruction is not None and getattr(args, 'phrasing', None):
+        return '--instruction and --phrasing exclude each other'
     if args.seed < 0 or args.episodes < 1 or not args.timeout > 0:
         return '--seed must be >= 0, --episodes >= 1 and --timeout > 0'
     params = args.params_file or default_params_file()
@@ -184,7 +189,7 @@ def _episodes(session: Session, args, records, logs_by_episode, started, say) ->
         if i:
             node.episode = None
             node.reset.publish(String(data=json.dumps({'task': args.task, 'seed': seed})))
-        record, log = run_episode(session, seed, args.instruction, args.timeout, cpu_sample, say)
+        record, log = run_episode(session, seed, args.instruction, args.timeout, cpu_sample, say, args.phrasing)
         records.append(record)
         logs_by_episode.append(log)
         if record['outcome'] == 'refused':

@@ -18,7 +18,7 @@ import rclpy
 import rclpy.executors
 
 from hdp_motion import panda
-from hdp_msgs_py import conversions, ros, topics
+from hdp_msgs_py import conversions, instructions, ros, topics
 from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
 from hdp_msgs_py.outcome import Outcome
 
@@ -219,8 +219,11 @@ def wait_for_graph(session: Session, say, started: float) -> None:
 
 
 def run_episode(session: Session, seed: int, instruction: str | None, timeout_s: float,
-                cpu_sample, say) -> tuple[dict, EpisodeLog]:
+                cpu_sample, say, phrasing: str | None = None) -> tuple[dict, EpisodeLog]:
     """One instruction on the current scene: (its summary record, its EpisodeLog).
+
+    The instruction is ``instruction``, else the evaluation harness's for this seed in ``phrasing``
+    (instructions.evaluation_instruction), else the episode's own (the bridge's).
 
     The scene is ready when it has shown a front frame and reported no success since it was
     set; the instruction then goes out and the episode ends with the planner's outcome for it
@@ -231,6 +234,8 @@ def run_episode(session: Session, seed: int, instruction: str | None, timeout_s:
         raise GraphDown(f'the scene of seed {seed} did not come up within {SCENE_TIMEOUT_S:.0f} s '
                         f'(waiting for {", ".join(node.scene_missing())})')
     episode = dict(node.episode)
+    if instruction is None and phrasing is not None:
+        instruction = instructions.evaluation_instruction(episode['task'], seed, episode['variation'], phrasing)
     text = (instruction or episode['instruction']).strip()
     say(f"episode {episode['task']} seed {seed} variation {episode['variation']}: {text!r}")
     before = cpu_sample()
