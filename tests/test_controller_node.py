@@ -222,6 +222,12 @@ def test_segment_timeouts_and_no_gripper_action():
     assert stuck.update(2.9, _state(goal + 0.1, moving)).result is None
     result = stuck.update(3.1, _state(goal + 0.1, moving)).result
     assert result.startswith('failed: the arm did not come to rest') and '0.100 rad' in result
+    # carry_on (the simulated graph's choice): arrived where it is, the gripper acts, then done.
+    sliding = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=False, carry_on=True)
+    assert sliding.update(2.9, _state(goal + 0.1, moving)) == (False, None)
+    assert sliding.update(3.1, _state(goal + 0.1, moving)) == (True, None)
+    assert sliding.unsettled == pytest.approx((0.1, 0.05)) and sliding.short_by is None
+    assert sliding.update(3.2, _state(goal + 0.1, moving, width=0.0)) == (False, 'done')
     # Still but short (a drawer's end stop): done once it has been still for BLOCKED_STILL_S.
     blocked = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     assert blocked.update(1.2, _state(goal + 0.03)).result is None

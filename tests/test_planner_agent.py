@@ -384,6 +384,34 @@ def test_agent_predicts_a_pose_from_camera_frames(tmp_path):
     assert isinstance(pose.gripper_open, bool) and 0 < pose.confidence <= 1
 
 
+def test_frames_of_another_size_are_resampled_to_the_training_size():
+    """A 640 x 480 render resampled to 128 x 96 is the 128 x 96 render: the same intrinsics, the
+    same depth but at a few edge pixels, colours within a few levels; the agent then predicts from
+    the cloud a native 128 x 96 frame gives."""
+    from hdp_planner.agent import resample_frame
+    from hdp_sim_bridge import experts
+    from hdp_sim_bridge.cameras import default_cameras
+    from hdp_sim_bridge.world import PandaWorld
+    big, small = default_cameras(640, 480), default_cameras(128, 96)
+    with PandaWorld() as world:
+        experts.reachable_scene(world, 'open_drawer', 1006)
+        frames = {size: {c: cam.render(world.client) for c, cam in cameras.items()}
+                  for size, cameras in (('big', big), ('small', small))}
+    for camera in big:
+        rgb, depth, intrinsics = resample_frame(*frames['big'][camera], big[camera].intrinsics, (128, 96))
+        assert dataclasses.astuple(intrinsics) == pytest.approx(dataclasses.astuple(small[camera].intrinsics))
+        assert depth.shape == (96, 128)
+        assert np.mean(np.abs(depth.astype(float) - frames['small'][camera][1]) > 10) < 0.005      # mm
+        assert np.abs(rgb.astype(float) - frames['small'][camera][0]).mean() < 5
+    same = resample_frame(*frames['small']['front'], small['front'].intrinsics, (128, 96))
+    assert same[0] is frames['small']['front'][0] and same[2] is small['front'].intrinsics
+    agent = NextBestPoseAgent(tiny_model(), camera_size=(128, 96))
+    clouds = [agent.predict(frames[size], {c: cam.intrinsics for c, cam in cameras.items()},
+                            {c: cam.camera_to_world for c, cam in cameras.items()}, 'open the middle drawer',
+                            (np.zeros(7), True)).cloud[0] for size, cameras in (('big', big), ('small', small))]
+    assert abs(len(clouds[0]) - len(clouds[1])) < 0.01 * len(clouds[1])
+
+
 def test_proprio_vector_scales_to_the_joint_limits():
     from hdp_motion import panda
     assert np.allclose(proprio_vector(panda.LOWER, False), [-1] * 8)

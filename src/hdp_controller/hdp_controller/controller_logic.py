@@ -217,11 +217,19 @@ class SegmentExecution:
     contact tasks a drawer's end stop or a hinge holds it short (``short_by`` then says how
     far, in rad), as it held the experts. Pressed against such a stop the joint velocities
     jitter above STILL_VELOCITY, so "blocked" looks at progress, not at speed.
+
+    An arm neither there nor blocked ``timeout_s`` after the trajectory's end (sliding along a
+    lid it presses on, say) fails the segment, unless ``carry_on``: then it counts as arrived
+    where it is (``unsettled`` says how far off and how fast), as the experts carried on after
+    their rest timeout, and the planner re-observes from there.
     """
 
-    def __init__(self, goal_q, duration_s: float, start_s: float, timeout_s: float, gripper_open: bool | None):
+    def __init__(self, goal_q, duration_s: float, start_s: float, timeout_s: float, gripper_open: bool | None,
+                 carry_on: bool = False):
         self.goal_q = np.asarray(goal_q, dtype=float)
         self.duration_s, self.start_s, self.timeout_s = duration_s, start_s, timeout_s
+        self.carry_on = carry_on
+        self.unsettled: tuple[float, float] | None = None           # (joint error rad, speed rad/s) on carrying on
         self.gripper_open = gripper_open
         self._gripper_start: tuple[float, float] | None = None      # (time, width) when commanded
         self._last_change: tuple[float, float] | None = None        # (time, width) of the last motion
@@ -243,14 +251,17 @@ class SegmentExecution:
             self._held = (now_s, state.q.copy()) if ended else None
         at_goal = ended and speed <= STILL_VELOCITY and error <= GOAL_TOLERANCE
         blocked = self._held is not None and now_s - self._held[0] >= BLOCKED_STILL_S
-        if at_goal or blocked:
+        timed_out = elapsed > self.duration_s + self.timeout_s
+        if timed_out and self.carry_on and not (at_goal or blocked):
+            self.unsettled = (error, speed)
+        if at_goal or blocked or self.unsettled:
             self.arrived_s = now_s
-            self.short_by = error if error > GOAL_TOLERANCE else None
+            self.short_by = error if error > GOAL_TOLERANCE and not self.unsettled else None
             if self.gripper_open is None:
                 return Update(result=topics.SEGMENT_DONE)
             self._gripper_start = self._last_change = (now_s, state.gripper_width)
             return Update(send_gripper=True)
-        if elapsed > self.duration_s + self.timeout_s:
+        if timed_out:
             return Update(result=f'{topics.SEGMENT_FAILED}the arm did not come to rest within '
                                  f'{self.timeout_s:.1f} s of the trajectory\'s end (max joint error '
                                  f'{error:.3f} rad, speed {speed:.3f} rad/s)')
@@ -291,8 +302,9 @@ class SegmentController:
     def __init__(self, policy, needs_points: bool, velocity_scale: float, segment_timeout_s: float,
                  arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS,
                  reach_tolerance: tuple[float, float] = (REACH_TOLERANCE_M, REACH_TOLERANCE_DEG),
-                 limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']):
+                 limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'], carry_on_unsettled: bool = False):
         self.policy, self.needs_points, self.limits = policy, needs_points, limits
+        self.carry_on_unsettled = carry_on_unsettled    # SegmentExecution.carry_on
         self.reach_tolerance = reach_tolerance
         self.velocity_scale, self.segment_timeout_s = velocity_scale, segment_timeout_s
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
@@ -397,7 +409,7 @@ class SegmentController:
         duration = conversions.duration_to_seconds(trajectory.points[-1].time_from_start)
         act = goal_open if goal_open is not None and goal_open != is_open else None
         self.running = (stamp, SegmentExecution(np.asarray(trajectory.points[-1].positions), duration, now_s,
-                                                self.segment_timeout_s, act))
+                                                self.segment_timeout_s, act, self.carry_on_unsettled))
         x, y, z = pending.goal[:3]
         gripper = '' if act is None else f', then {"open" if act else "close"} the gripper'
         return out + [Out('arm', trajectory), Out('info', (
@@ -432,6 +444,9 @@ class SegmentController:
             kind = 'info' if update.result == topics.SEGMENT_DONE else 'error'
             short = (f' (the arm stopped {execution.short_by:.3f} rad short of the last waypoint: blocked)'
                      if execution.short_by is not None else '')
+            if execution.unsettled:
+                short = (f' (the arm had not come to rest {execution.timeout_s:.1f} s after the trajectory\'s end: '
+                         'carried on {:.3f} rad from the last waypoint, moving at {:.3f} rad/s)'.format(*execution.unsettled))
             out += [Out(kind, f'segment {stamp_label(stamp)}: {update.result}{short}'),
                     Out('result', Header(stamp=stamp, frame_id=update.result))]
         return out

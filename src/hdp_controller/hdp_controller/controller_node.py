@@ -36,7 +36,9 @@ class ControllerNode(ros.Node):
         'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser.pt ($HDP_MODELS_DIR)"),
         'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
         'device': ('cpu', 'where the diffusers sample: cpu | cuda | cuda:N | auto (refinement stays on the CPU)'),
-        'segment_timeout_s': (10.0, 's after the trajectory ends before the segment has failed'),
+        'segment_timeout_s': (10.0, 's after the trajectory ends for the arm to come to rest'),
+        'unsettled': ('fail', "an arm not at rest segment_timeout_s after the trajectory's end: fail the segment, "
+                              'or carry_on from where it is (as the experts and hdp eval hierarchy do)'),
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before a segment fails'),
         'robot_type': ('panda', 'panda | fr3: the joint limits trajectories are refined, checked and timed against'),
         'velocity_scale': (VELOCITY_SCALE, "fraction of the robot's velocity limits, (0, 1]"),
@@ -56,6 +58,8 @@ class ControllerNode(ros.Node):
             raise ros.StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
         if not 0.0 < p['velocity_scale'] <= 1.0:
             raise ros.StartupError(f"parameter 'velocity_scale' must be in (0, 1], got {p['velocity_scale']}")
+        if p['unsettled'] not in ('fail', 'carry_on'):
+            raise ros.StartupError(f"parameter 'unsettled' must be fail or carry_on, got {p['unsettled']!r}")
         for name in ('arm_interface', 'gripper_interface'):
             if p[name] not in INTERFACES:
                 raise ros.StartupError(f"parameter {name!r} must be topic or action, got {p[name]!r}")
@@ -76,7 +80,8 @@ class ControllerNode(ros.Node):
             policy, needs_points=p['method'] in LEARNED, velocity_scale=p['velocity_scale'],
             segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
             finger_joints=panda.finger_joint_names(prefix),
-            reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits)
+            reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits,
+            carry_on_unsettled=p['unsettled'] == 'carry_on')
 
         self.status = ros.Status(self)
         self._outputs = {

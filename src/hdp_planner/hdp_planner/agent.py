@@ -29,18 +29,43 @@ class NextBestPose(NamedTuple):
     cloud: tuple[np.ndarray, np.ndarray] | None = None
 
 
-class NextBestPoseAgent:
+def resample_frame(rgb: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
+                   size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
+    """One RGB-D frame as the camera would have taken it at ``size`` (width, height): colour
+    area-averaged, depth sampled at the nearest pixel (never a depth mixed across an edge), the
+    intrinsics scaled. rgb (H, W, 3) uint8, depth (H, W) any dtype; unchanged at its own size."""
+    width, height = size
+    if (intrinsics.width, intrinsics.height) == (width, height):
+        return rgb, depth, intrinsics
+    sx, sy = width / intrinsics.width, height / intrinsics.height
+    image = torch.from_numpy(np.asarray(rgb, dtype=np.float32)).permute(2, 0, 1)[None]
+    small = torch.nn.functional.interpolate(image, size=(height, width), mode='area')
+    rgb = small[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
+    rows = np.minimum(((np.arange(height) + 0.5) / sy).astype(int), intrinsics.height - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) / sx).astype(int), intrinsics.width - 1)
+    depth = np.asarray(depth)[rows[:, None], cols[None, :]]
+    scaled = Intrinsics(intrinsics.fx * sx, intrinsics.fy * sy, (intrinsics.cx + 0.5) * sx - 0.5,
+                        (intrinsics.cy + 0.5) * sy - 0.5, width, height)
+    return rgb, depth, scaled
 
-    def __init__(self, model: NextBestPoseNet, device='cpu', training_seeds: dict | None = None):
+
+class NextBestPoseAgent:
+    """camera_size: (width, height) the agent was trained at; frames of another size are resampled
+    to it (resample_frame), so a 640 x 480 camera shows it what 128 x 96 training frames showed:
+    thin parts (a drawer handle) fill the voxels as they did in training. None: frames as they come."""
+
+    def __init__(self, model: NextBestPoseNet, device='cpu', training_seeds: dict | None = None,
+                 camera_size: tuple[int, int] | None = None):
         self.model = model.to(device).eval()
         self.device = device
         self.training_seeds = training_seeds or {}     # task -> seeds: evaluation refuses them
+        self.camera_size = camera_size
 
     @classmethod
-    def from_checkpoint(cls, path, device='cpu') -> NextBestPoseAgent:
+    def from_checkpoint(cls, path, device='cpu', camera_size: tuple[int, int] | None = None) -> NextBestPoseAgent:
         """The agent of a checkpoint written by `hdp train high-level`; CheckpointError if it is not one."""
         model, stored = checkpoint.load_model(path, device)
-        return cls(model, device, stored['training_seeds'])
+        return cls(model, device, stored['training_seeds'], camera_size)
 
     def predict(self, rgb_depth_per_camera: dict, camera_infos: dict, camera_to_world: dict,
                 instruction: str, proprio) -> NextBestPose:
@@ -54,9 +79,11 @@ class NextBestPoseAgent:
         frames, intrinsics, to_world = {}, {}, {}
         for camera, (rgb, depth) in rgb_depth_per_camera.items():
             depth = np.asarray(depth)
-            frames[camera] = (rgb, depth * 0.001 if depth.dtype == np.uint16 else depth.astype(np.float32))
             info = camera_infos[camera]
             intrinsics[camera] = info if isinstance(info, Intrinsics) else camera_info_to_intrinsics(info)
+            if self.camera_size:
+                rgb, depth, intrinsics[camera] = resample_frame(rgb, depth, intrinsics[camera], self.camera_size)
+            frames[camera] = (rgb, depth * 0.001 if depth.dtype == np.uint16 else depth.astype(np.float32))
             transform = camera_to_world[camera]
             to_world[camera] = transform if isinstance(transform, np.ndarray) else transform_to_matrix(transform)
         points = scene_points(frames, intrinsics, to_world)

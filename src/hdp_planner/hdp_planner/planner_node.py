@@ -37,6 +37,8 @@ class PlannerNode(ros.Node):
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before an instruction fails'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
         'publish_cloud': (False, 'publish the cloud each prediction saw on /hdp/planner/cloud (for a viewer)'),
+        'camera_size': ([128, 96], 'the frame size [width, height] the agent was trained at (hdp collect --width '
+                                   '--height); frames of another size are resampled to it; [0, 0] takes them as they come'),
     }
 
     def __init__(self):
@@ -49,9 +51,13 @@ class PlannerNode(ros.Node):
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         if not 0.0 <= p['min_confidence'] < 1.0:
             raise ros.StartupError(f"parameter 'min_confidence' must be in [0, 1), got {p['min_confidence']}")
+        camera_size = tuple(p['camera_size'])
+        if camera_size != (0, 0) and (len(camera_size) != 2 or min(camera_size) < 8 or max(camera_size) > 4096):
+            raise ros.StartupError("parameter 'camera_size' must be [width, height] in 8..4096, or [0, 0], "
+                                   f'got {list(camera_size)}')
         checkpoint = p['checkpoint'] or default_checkpoint()
         try:
-            agent = NextBestPoseAgent.from_checkpoint(checkpoint)
+            agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size if any(camera_size) else None)
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
             raise ros.StartupError(f'cannot load the next-best-pose agent: {err}') from None
         prefix = p['joint_prefix']
