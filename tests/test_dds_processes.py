@@ -102,11 +102,14 @@ def test_parameters_from_yaml_and_command_line(ros_domain, tmp_path):
 @pytest.mark.parametrize('value, expected', [
     ('lots', "[ERROR] [planner_node]: Trying to set parameter 'max_segments' to 'lots' of type 'STRING', "
              "expecting type 'INTEGER'"),
-    ('0', "[ERROR] [planner_node]: parameter 'max_segments' must be >= 1, got 0")])
+    ('0', "[ERROR] [planner_node]: parameter 'max_segments' must be >= 1, got 0"),
+    ('camera_size:=[640]', "[ERROR] [planner_node]: parameter 'camera_size' must be [width, height] in 8..4096"),
+    ('camera_size:=[128, 4]', "[ERROR] [planner_node]: parameter 'camera_size' must be [width, height] in 8..4096")])
 def test_a_node_refuses_a_bad_parameter_in_one_line(ros_domain, value, expected):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
-    proc = subprocess.run([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args', '-p',
-                           f'max_segments:={value}'], env=env, text=True, capture_output=True, timeout=60)
+    parameter = value if ':=' in value else f'max_segments:={value}'
+    proc = subprocess.run([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args', '-p', parameter],
+                          env=env, text=True, capture_output=True, timeout=60)
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines()[-1].startswith(expected)
     assert 'Traceback' not in proc.stderr
