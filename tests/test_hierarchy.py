@@ -33,6 +33,19 @@ class StuckAgent:
         return NextBestPose(np.array([0.5, 0.0, 1.1]), np.array([1.0, 0.0, 0.0, 0.0]), True, 1.0)
 
 
+def test_think_runs_the_world_while_the_arm_holds():
+    """--think-s: the world runs on (sim time advances) while the arm holds where it was commanded."""
+    from hdp_eval.hierarchy_eval import think
+    from hdp_sim_bridge import experts
+    from hdp_sim_bridge.world import PandaWorld
+    with PandaWorld() as world:
+        task, _, _ = experts.reachable_scene(world, 'open_box', 1000)
+        start, q = world.sim_time, world.joint_positions()
+        think(world, task, 0.5)
+        assert world.sim_time - start == pytest.approx(0.5, abs=0.01)
+        assert np.max(np.abs(world.joint_positions() - q)) < 1e-3
+
+
 def test_agent_with_planner_solves_reach_target_and_re_observes_each_segment():
     oracle = oracle_episode('reach_target', 4001)
     agent = ReplayAgent(oracle)

@@ -144,6 +144,9 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
                         help='RK-Diffuser sampler (default ddim)')
     parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
+    parser.add_argument('--think-s', type=float, default=0.0, metavar='S',
+                        help='sim seconds the world runs between each observation and its segment\'s motion, '
+                             'as in the graph while the agent and the low level think (default 0: frozen)')
     parser.add_argument('--flat-diffusion-policy-checkpoint', type=Path,
                         help='the diffusion_policy row (default: models/flat_diffusion_policy.pt, $HDP_MODELS_DIR)')
     parser.add_argument('--flat-act-checkpoint', type=Path,
@@ -186,8 +189,8 @@ def run_hierarchy(args) -> int:
     agents, tasks = _names(args.agents, {**AGENTS, **FLAT_AGENTS}, 'agent'), _tasks(args.tasks)
     phrasings = _names('seen,heldout' if args.phrasings == 'both' else args.phrasings, PHRASINGS, 'phrasing')
     reach_tolerance = _reach_tolerance(args.reach_tolerance)
-    if args.flat_max_seconds <= 0:
-        raise SystemExit('--flat-max-seconds must be > 0')
+    if args.flat_max_seconds <= 0 or args.think_s < 0:
+        raise SystemExit('--flat-max-seconds must be > 0 and --think-s >= 0')
     if args.threads:
         torch.set_num_threads(args.threads)
     hierarchical = [name for name in agents if name in AGENTS]
@@ -211,7 +214,8 @@ def run_hierarchy(args) -> int:
     try:
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments,
                            min_confidence=min_confidence, reach_tolerance=reach_tolerance, flat=flat,
-                           flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras)
+                           flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras,
+                           think_s=args.think_s)
     except ValueError as err:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1

@@ -106,20 +106,30 @@ def nonsense(text: str, rng: np.random.Generator) -> str:
     return ' '.join(w if i == keep else str(rng.choice(PSEUDO_WORDS)) for i, w in enumerate(tokens))
 
 
+def think(world, task, seconds: float) -> None:
+    """Let the world run ``seconds`` with the arm holding its last command, as it runs in the graph
+    while the agent and the low level think: what they saw is that much older when the arm moves."""
+    for _ in range(round(seconds / TIME_STEP)):
+        world.step()
+        task.on_step(world)
+
+
 def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing: str = 'seen',
                 max_segments: int = MAX_SEGMENTS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None,
-                min_confidence: float = 0.0, reach_tolerance: tuple[float, float] | None = None) -> HierarchyRecord:
+                min_confidence: float = 0.0, reach_tolerance: tuple[float, float] | None = None,
+                think_s: float = 0.0) -> HierarchyRecord:
     """One closed-loop episode, refusing what planner_node and controller_node refuse.
 
     min_confidence: a first prediction below it refuses the instruction (failure 'refused: low
     confidence'). reach_tolerance: (m, deg); a plan ending farther from its NBP is refused
     (failure 'refused: NBP not reachable'), as controller_node's reach_tolerance_m/deg do.
-    Either way nothing moves.
+    Either way nothing moves. think_s: sim seconds between each observation and its segment's
+    motion (think); 0 freezes the world meanwhile.
     """
     if world is None:
         with PandaWorld() as own:
             return run_episode(name, agent, low_level, task_name, seed, phrasing, max_segments, camera_size, own,
-                               min_confidence, reach_tolerance)
+                               min_confidence, reach_tolerance, think_s)
     task, _, variation = experts.reachable_scene(world, task_name, seed)
     record = HierarchyRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
     cameras = default_cameras(*camera_size)
@@ -148,6 +158,7 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
         if reach_tolerance is not None and any(e > t for e, t in zip(record.reach_errors[-1], reach_tolerance)):
             record.failure = 'refused: NBP not reachable'
             return record
+        think(world, task, think_s)
         execute_segment(world, task, plan.joints, request.gripper_open, nbp.gripper_open)
         if task.success(world):
             record.success = True
@@ -222,7 +233,8 @@ def run_flat_episode(name: str, policy, task_name: str, seed: int, phrasing: str
 def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phrasings=('seen',),
              max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0,
              reach_tolerance: tuple[float, float] | None = None, flat: dict | None = None,
-             flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str | None = None) -> dict:
+             flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str | None = None,
+             think_s: float = 0.0) -> dict:
     """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates.
 
     flat: name -> FlatPolicy, rows run by run_flat_episode (``agent`` may be None when there are
@@ -257,13 +269,15 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
                                                 world=world, cameras_when=cameras_when[name]))
                 continue
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
-                                       world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance))
+                                       world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance,
+                                       think_s=think_s))
     if world_size > 1:
         order = {job: i for i, job in enumerate(jobs)}
         records = sorted((r for part in distributed.gather(records, world_size) for r in part),
                          key=lambda r: order[(r.agent, r.task, r.seed, r.phrasing)])
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
-               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'processes': world_size,
+               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'think_s': think_s,
+               'processes': world_size,
                'agents': {}}
     if flat:
         results['flat'] = {'max_seconds': flat_max_seconds, 'cameras': cameras_when,
