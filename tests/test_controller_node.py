@@ -431,7 +431,7 @@ def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, inter
     assert facts['nan_result'].startswith('failed: invalid pose: position must be finite')
     assert any('refused segment 1.000' in s for s in facts['status'])
     # The segment's own outcome first: on a loaded machine its status lines say why it failed.
-    assert facts['result'] == 'done' and facts['result_stamp'] == 2, facts['status']
+    assert facts['result'] == 'done' and facts['result_stamp'] in (2, 3, 4), facts['status']
     if interface == 'topic':
         assert facts['trajectories'] == 1                             # the NaN pose sent none
         assert facts['within_limits'] and facts['first_point_error'] < 0.05
@@ -478,10 +478,16 @@ def probe() -> None:
     facts['nan_result'] = seen['results'][0].frame_id
 
     goal = reachable_goal()
-    gripper_pub.publish(gripper_goal_msg(False, stamp_sec=2))
-    pose_pub.publish(nbp(goal[:3], goal[3:], stamp_sec=2))
-    assert spin(45, lambda: len(seen['results']) >= 2), 'no result for the reachable pose'
-    result = seen['results'][1]
+    # The probe's own /joint_states says nothing about the controller's: on a loaded machine the
+    # controller may not have heard the robot yet, and it refuses by design; then ask again.
+    for stamp_sec in (2, 3, 4):
+        gripper_pub.publish(gripper_goal_msg(False, stamp_sec=stamp_sec))
+        pose_pub.publish(nbp(goal[:3], goal[3:], stamp_sec=stamp_sec))
+        assert spin(45, lambda: len(seen['results']) >= stamp_sec), 'no result for the reachable pose'
+        result = seen['results'][-1]
+        if not result.frame_id.startswith('failed: no usable /joint_states received yet'):
+            break
+        spin(1.0, lambda: False)
     facts.update(result=result.frame_id, result_stamp=result.stamp.sec, trajectories=len(seen['trajectories']))
     names = list(seen['joints'].name)
     position = np.asarray(seen['joints'].position, dtype=float)
