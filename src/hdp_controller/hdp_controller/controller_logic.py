@@ -445,8 +445,9 @@ class SegmentController:
             short = (f' (the arm stopped {execution.short_by:.3f} rad short of the last waypoint: blocked)'
                      if execution.short_by is not None else '')
             if execution.unsettled:
+                error, speed = execution.unsettled
                 short = (f' (the arm had not come to rest {execution.timeout_s:.1f} s after the trajectory\'s end: '
-                         'carried on {:.3f} rad from the last waypoint, moving at {:.3f} rad/s)'.format(*execution.unsettled))
+                         f'carried on {error:.3f} rad from the last waypoint, moving at {speed:.3f} rad/s)')
             out += [Out(kind, f'segment {stamp_label(stamp)}: {update.result}{short}'),
                     Out('result', Header(stamp=stamp, frame_id=update.result))]
         return out

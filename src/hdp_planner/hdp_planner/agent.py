@@ -29,6 +29,16 @@ class NextBestPose(NamedTuple):
     cloud: tuple[np.ndarray, np.ndarray] | None = None
 
 
+def downscale(rgb, width: int, height: int) -> np.ndarray:
+    """(height, width, 3) uint8: ``rgb`` (H, W, 3) uint8 area-averaged (torch's 'area' interpolation)."""
+    rgb = np.asarray(rgb)
+    if rgb.shape[:2] == (height, width):
+        return rgb.astype(np.uint8)
+    image = torch.from_numpy(np.array(rgb, dtype=np.float32)).permute(2, 0, 1)[None]
+    small = torch.nn.functional.interpolate(image, size=(height, width), mode='area')
+    return small[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
+
+
 def resample_frame(rgb: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
                    size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, Intrinsics]:
     """One RGB-D frame as the camera would have taken it at ``size`` (width, height): colour
@@ -38,9 +48,7 @@ def resample_frame(rgb: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
     if (intrinsics.width, intrinsics.height) == (width, height):
         return rgb, depth, intrinsics
     sx, sy = width / intrinsics.width, height / intrinsics.height
-    image = torch.from_numpy(np.asarray(rgb, dtype=np.float32)).permute(2, 0, 1)[None]
-    small = torch.nn.functional.interpolate(image, size=(height, width), mode='area')
-    rgb = small[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
+    rgb = downscale(rgb, width, height)
     rows = np.minimum(((np.arange(height) + 0.5) / sy).astype(int), intrinsics.height - 1)
     cols = np.minimum(((np.arange(width) + 0.5) / sx).astype(int), intrinsics.width - 1)
     depth = np.asarray(depth)[rows[:, None], cols[None, :]]

@@ -51,13 +51,13 @@ class PlannerNode(ros.Node):
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         if not 0.0 <= p['min_confidence'] < 1.0:
             raise ros.StartupError(f"parameter 'min_confidence' must be in [0, 1), got {p['min_confidence']}")
-        camera_size = tuple(p['camera_size'])
-        if camera_size != (0, 0) and (len(camera_size) != 2 or min(camera_size) < 8 or max(camera_size) > 4096):
+        camera_size = None if tuple(p['camera_size']) == (0, 0) else tuple(p['camera_size'])
+        if camera_size is not None and (len(camera_size) != 2 or min(camera_size) < 8 or max(camera_size) > 4096):
             raise ros.StartupError("parameter 'camera_size' must be [width, height] in 8..4096, or [0, 0], "
                                    f'got {list(camera_size)}')
         checkpoint = p['checkpoint'] or default_checkpoint()
         try:
-            agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size if any(camera_size) else None)
+            agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size)
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
             raise ros.StartupError(f'cannot load the next-best-pose agent: {err}') from None
         prefix = p['joint_prefix']

@@ -35,6 +35,7 @@ from hdp_msgs_py import topics
 from hdp_msgs_py.episodes import list_episodes, read_episode
 
 from .. import language
+from ..agent import downscale
 from ..model import proprio_vector
 
 CACHE_VERSION = 2
@@ -55,17 +56,6 @@ def actions(joint_positions, gripper_open) -> np.ndarray:
     """(..., 8) float32 actions: absolute joint targets (rad), then +1 open / -1 closed."""
     gripper = np.where(np.asarray(gripper_open, dtype=bool), 1.0, -1.0)[..., None]
     return np.concatenate([np.asarray(joint_positions, dtype=np.float64), gripper], -1).astype(np.float32)
-
-
-def downscale(rgb, width: int, height: int) -> np.ndarray:
-    """(height, width, 3) uint8: ``rgb`` (H, W, 3) uint8 area-averaged (torch's 'area' interpolation)."""
-    import torch
-    rgb = np.asarray(rgb)
-    if rgb.shape[:2] == (height, width):
-        return rgb.astype(np.uint8)
-    image = torch.from_numpy(np.array(rgb, dtype=np.float32)).permute(2, 0, 1)[None]
-    small = torch.nn.functional.interpolate(image, size=(height, width), mode='area')
-    return small[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
 
 
 def episode_flat_samples(episode, width: int, height: int, period: float = CONTROL_PERIOD_S) -> dict:
