@@ -1,7 +1,9 @@
 """hdp_msgs_py.ros: the Fast DDS profile every process gets, and what it does to the sockets."""
 
 import os
+import signal
 import socket
+import threading
 import time
 import xml.etree.ElementTree as ElementTree
 
@@ -97,17 +99,26 @@ class _Quiet(ros.Node):
         super().__init__('quiet')
 
 
-@pytest.mark.parametrize('shut_down', [True, False])
-def test_run_takes_an_error_from_a_shutdown_mid_take_as_the_shutdown_it_is(monkeypatch, ros_domain, shut_down):
-    def spin(node):          # what SIGINT during a subscription's message conversion looks like
-        if shut_down:
+@pytest.mark.parametrize('shutdown', ['context_down', 'ctrl_c', 'context_down_late', 'none'])
+def test_run_takes_an_error_from_a_shutdown_mid_take_as_the_shutdown_it_is(monkeypatch, ros_domain, shutdown):
+    """SIGINT during a subscription's message conversion: rclpy may have shut its context down
+    (context_down), or not yet: the KeyboardInterrupt came first (ctrl_c) or the context goes down
+    from rclpy's signal thread a moment later (context_down_late). With none of these it is a bug."""
+    def spin(node):
+        if shutdown == 'context_down':
             ros.rclpy.shutdown()
+        elif shutdown == 'ctrl_c':
+            with pytest.raises(KeyboardInterrupt):
+                ros._interrupt(signal.SIGINT, None)
+        elif shutdown == 'context_down_late':
+            threading.Timer(0.3, ros.rclpy.shutdown).start()
         raise RuntimeError("Unable to convert call argument '0' to Python object")
     monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain))
     monkeypatch.setattr(ros.rclpy, 'spin', spin)
-    if shut_down:
-        ros.run(_Quiet, ['quiet'])
-    else:
+    monkeypatch.setattr(ros, '_interrupted', threading.Event())
+    if shutdown == 'none':
         with pytest.raises(RuntimeError, match='Unable to convert'):
             ros.run(_Quiet, ['quiet'])
+    else:
+        ros.run(_Quiet, ['quiet'])
     assert not ros.rclpy.ok()

@@ -19,7 +19,10 @@ damaged checkpoint) exits 1 with one line saying why, not a traceback.
 
 import functools
 import os
+import signal
 import sys
+import threading
+import time
 import traceback
 from pathlib import Path
 
@@ -53,10 +56,35 @@ def use_localhost_profile(environ=os.environ) -> bool:
     return True
 
 
+_interrupted = threading.Event()
+
+
+def _interrupt(signum, frame):
+    """Python's own SIGINT behaviour, remembered: see shutting_down()."""
+    _interrupted.set()
+    raise KeyboardInterrupt
+
+
 def init(args=None, **kwargs) -> None:
     """rclpy.init() with the middleware set up for the graph (use_localhost_profile)."""
     use_localhost_profile()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _interrupt)        # rclpy's handler chains to this one
     rclpy.init(args=args, **kwargs)
+
+
+def shutting_down(wait_s: float = 2.0) -> bool:
+    """Whether the process is being shut down: Ctrl-C arrived, or the context stops within wait_s.
+
+    rclpy shuts its context down from a thread of its own after SIGINT/SIGTERM, so
+    an error raised by that signal can reach the node before rclpy.ok() turns False.
+    """
+    end = time.monotonic() + wait_s
+    while not _interrupted.is_set() and rclpy.ok():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True
 
 
 class StartupError(Exception):
@@ -153,10 +181,10 @@ def run(node_class, args=None, name: str = '') -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # rclpy's SIGINT handler can shut the context down while the executor builds its wait
-        # set (RCLError 'the given context is not valid') or while a subscription converts a
-        # message (pybind11's 'Unable to convert call argument'): a shutdown too, not a failure.
-        if rclpy.ok():
+        # A signal can land while the executor builds its wait set (RCLError 'the given
+        # context is not valid') or while a subscription converts a message (pybind11 turns
+        # the KeyboardInterrupt into 'Unable to convert call argument'): a shutdown, not a failure.
+        if not shutting_down():
             raise
     finally:
         node.destroy_node()
