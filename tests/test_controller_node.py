@@ -182,6 +182,36 @@ def test_a_plan_that_ends_away_from_its_nbp_is_refused_with_the_distance():
     assert np.allclose(exact.points[-1].positions, REACHING_Q)
 
 
+class DrawingPolicy(FakePolicy):
+    """Each plan() the next of ``draws`` (joint arrays), as a diffusion policy draws fresh noise."""
+
+    def __init__(self, draws):
+        super().__init__()
+        self.draws = list(draws)
+
+    def plan(self, request, scene=None):
+        self.joints = self.draws[len(self.requests)]
+        return super().plan(request, scene)
+
+
+def test_a_plan_ending_away_from_its_nbp_is_drawn_again_up_to_the_attempts():
+    from hdp_controller.controller_logic import SegmentRefused, plan_segment, plan_within_reach
+    far = np.vstack([panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])])
+    farther = np.vstack([panda.HOME, panda.HOME + np.array([0.9, 0, 0, 0, 0, 0, 0])])
+    reaching = np.vstack([panda.HOME, REACHING_Q])
+    policy = DrawingPolicy([far, reaching, far])
+    msg, _ = plan_segment(policy, _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0), attempts=3)
+    assert np.allclose(msg.points[-1].positions, REACHING_Q) and len(policy.requests) == 2   # stops when within
+    with pytest.raises(SegmentRefused, match='plan ends'):
+        plan_segment(DrawingPolicy([far, reaching]), _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0), attempts=1)
+    plan, draws = plan_within_reach(DrawingPolicy([farther, far, farther]), _request(), (0.1, 15.0), attempts=3)
+    assert draws == 3 and np.allclose(plan.joints, far)                  # none within: the nearest
+    plan, draws = plan_within_reach(DrawingPolicy([far, reaching]), _request(), None, attempts=3)
+    assert draws == 1 and np.allclose(plan.joints, far)                  # nothing to check: one draw
+    failing = FakePolicy(failure='no_path')
+    assert plan_within_reach(failing, _request(), (0.1, 15.0), attempts=3)[1] == 1
+
+
 def test_planner_method_reaches_the_goal_pose_within_limits():
     from hdp_motion import kinematics
     from hdp_controller.baselines import PlannerPolicy

@@ -76,6 +76,10 @@ def test_a_plan_ending_beyond_the_reach_tolerance_is_refused_as_controller_node_
     refused = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
                           reach_tolerance=(metres - 0.01, 180.0))
     assert refused.failure == 'refused: NBP not reachable' and refused.reach_errors == [(metres, degrees)]
+    assert refused.plan_draws == [1]
+    redrawn = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
+                          reach_tolerance=(metres - 0.01, 180.0), plan_attempts=3)
+    assert redrawn.failure == 'refused: NBP not reachable' and redrawn.plan_draws == [3]   # it never moves
     loose = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
                         reach_tolerance=(metres + 0.01, degrees + 1.0))
     assert loose.failure == 'segment budget spent'

@@ -20,7 +20,7 @@ from hdp_msgs_py.liveness import Liveness
 from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
 
 from .action_clients import ArmAction, GripperAction
-from .controller_logic import REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, SegmentController
+from .controller_logic import PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, SegmentController
 from .policy import LEARNED, METHODS, load_policy
 from .trajectory import VELOCITY_SCALE
 
@@ -44,6 +44,8 @@ class ControllerNode(ros.Node):
         'velocity_scale': (VELOCITY_SCALE, "fraction of the robot's velocity limits, (0, 1]"),
         'reach_tolerance_m': (REACH_TOLERANCE_M, 'a plan ending farther from its NBP is refused (m)'),
         'reach_tolerance_deg': (REACH_TOLERANCE_DEG, 'a plan ending turned farther from its NBP is refused (deg)'),
+        'plan_attempts': (PLAN_ATTEMPTS, 'plans drawn (fresh noise each) before one ending beyond the tolerance '
+                                         'is refused'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
         'arm_interface': ('topic', "topic: JointTrajectory to the controller's topic; action: FollowJointTrajectory"),
         'arm_action': (topics.ARM_ACTION, "FollowJointTrajectory action: a JTC's <controller>/follow_joint_trajectory"),
@@ -66,6 +68,8 @@ class ControllerNode(ros.Node):
         for name in ('segment_timeout_s', 'state_timeout_s', 'reach_tolerance_m', 'reach_tolerance_deg'):
             if not p[name] > 0.0:
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
+        if p['plan_attempts'] < 1:
+            raise ros.StartupError(f"parameter 'plan_attempts' must be >= 1, got {p['plan_attempts']}")
         try:
             limits = panda.limits_for(p['robot_type'])
         except ValueError as err:
@@ -81,7 +85,7 @@ class ControllerNode(ros.Node):
             segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
             finger_joints=panda.finger_joint_names(prefix),
             reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits,
-            carry_on_unsettled=p['unsettled'] == 'carry_on')
+            carry_on_unsettled=p['unsettled'] == 'carry_on', plan_attempts=p['plan_attempts'])
 
         self.status = ros.Status(self)
         self._outputs = {

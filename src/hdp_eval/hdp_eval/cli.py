@@ -139,6 +139,9 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--reach-tolerance', default=None, metavar='M,DEG',
                         help="refuse a plan that ends farther from its NBP (default: controller_node's "
                              "reach_tolerance_m,reach_tolerance_deg; 'off' executes every plan)")
+    parser.add_argument('--plan-attempts', type=int, default=None, metavar='N',
+                        help="draws of the low level before a plan ending beyond the reach tolerance is refused "
+                             "(default: controller_node's plan_attempts)")
     parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent.pt ($HDP_MODELS_DIR)')
     parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser.pt')
     parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
@@ -189,8 +192,10 @@ def run_hierarchy(args) -> int:
     agents, tasks = _names(args.agents, {**AGENTS, **FLAT_AGENTS}, 'agent'), _tasks(args.tasks)
     phrasings = _names('seen,heldout' if args.phrasings == 'both' else args.phrasings, PHRASINGS, 'phrasing')
     reach_tolerance = _reach_tolerance(args.reach_tolerance)
-    if args.flat_max_seconds <= 0 or args.think_s < 0:
-        raise SystemExit('--flat-max-seconds must be > 0 and --think-s >= 0')
+    from hdp_controller.controller_logic import PLAN_ATTEMPTS
+    plan_attempts = PLAN_ATTEMPTS if args.plan_attempts is None else args.plan_attempts
+    if args.flat_max_seconds <= 0 or args.think_s < 0 or plan_attempts < 1:
+        raise SystemExit('--flat-max-seconds must be > 0, --think-s >= 0 and --plan-attempts >= 1')
     if args.threads:
         torch.set_num_threads(args.threads)
     hierarchical = [name for name in agents if name in AGENTS]
@@ -215,7 +220,7 @@ def run_hierarchy(args) -> int:
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments,
                            min_confidence=min_confidence, reach_tolerance=reach_tolerance, flat=flat,
                            flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras,
-                           think_s=args.think_s)
+                           think_s=args.think_s, plan_attempts=plan_attempts)
     except ValueError as err:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1

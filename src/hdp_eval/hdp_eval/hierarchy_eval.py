@@ -30,7 +30,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from hdp_controller.controller_logic import reach_error
+from hdp_controller.controller_logic import plan_within_reach, reach_error
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
 from hdp_msgs_py import distributed, instructions
 from hdp_planner import language
@@ -73,7 +73,8 @@ class HierarchyRecord:
     confidences: list = dataclasses.field(default_factory=list)    # the agent's, per prediction
     reach_errors: list = dataclasses.field(default_factory=list)   # (m, deg) plan end to NBP, per plan
     predict_times: list = dataclasses.field(default_factory=list)
-    plan_times: list = dataclasses.field(default_factory=list)
+    plan_times: list = dataclasses.field(default_factory=list)       # s, all draws of a plan together
+    plan_draws: list = dataclasses.field(default_factory=list)       # draws per plan (plan_attempts)
 
 
 @dataclasses.dataclass
@@ -117,19 +118,20 @@ def think(world, task, seconds: float) -> None:
 def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing: str = 'seen',
                 max_segments: int = MAX_SEGMENTS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None,
                 min_confidence: float = 0.0, reach_tolerance: tuple[float, float] | None = None,
-                think_s: float = 0.0) -> HierarchyRecord:
+                think_s: float = 0.0, plan_attempts: int = 1) -> HierarchyRecord:
     """One closed-loop episode, refusing what planner_node and controller_node refuse.
 
     min_confidence: a first prediction below it refuses the instruction (failure 'refused: low
-    confidence'). reach_tolerance: (m, deg); a plan ending farther from its NBP is refused
-    (failure 'refused: NBP not reachable'), as controller_node's reach_tolerance_m/deg do.
+    confidence'). reach_tolerance: (m, deg); a plan ending farther from its NBP after
+    ``plan_attempts`` draws is refused (failure 'refused: NBP not reachable'), as controller_node's
+    reach_tolerance_m/deg and plan_attempts do (controller_logic.plan_within_reach).
     Either way nothing moves. think_s: sim seconds between each observation and its segment's
     motion (think); 0 freezes the world meanwhile.
     """
     if world is None:
         with PandaWorld() as own:
             return run_episode(name, agent, low_level, task_name, seed, phrasing, max_segments, camera_size, own,
-                               min_confidence, reach_tolerance, think_s)
+                               min_confidence, reach_tolerance, think_s, plan_attempts)
     task, _, variation = experts.reachable_scene(world, task_name, seed)
     record = HierarchyRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
     cameras = default_cameras(*camera_size)
@@ -148,8 +150,9 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
         request = segment_request(world, np.r_[nbp.xyz, nbp.quat], nbp.gripper_open,
                                   front_points(world, cameras['front'], N_POINTS, rng))
         started = time.perf_counter()
-        plan = low_level.plan(request, world_scene(world, task))
+        plan, draws = plan_within_reach(low_level, request, reach_tolerance, plan_attempts, world_scene(world, task))
         record.plan_times.append(time.perf_counter() - started)
+        record.plan_draws.append(draws)
         record.segments += 1
         if not plan.ok:
             record.failure, record.ik_error = plan.failure or 'no_plan', bool(plan.ik_error)
@@ -234,7 +237,7 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
              max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0,
              reach_tolerance: tuple[float, float] | None = None, flat: dict | None = None,
              flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str | None = None,
-             think_s: float = 0.0) -> dict:
+             think_s: float = 0.0, plan_attempts: int = 1) -> dict:
     """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates.
 
     flat: name -> FlatPolicy, rows run by run_flat_episode (``agent`` may be None when there are
@@ -270,13 +273,14 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
                 continue
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
                                        world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance,
-                                       think_s=think_s))
+                                       think_s=think_s, plan_attempts=plan_attempts))
     if world_size > 1:
         order = {job: i for i, job in enumerate(jobs)}
         records = sorted((r for part in distributed.gather(records, world_size) for r in part),
                          key=lambda r: order[(r.agent, r.task, r.seed, r.phrasing)])
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
-               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'think_s': think_s,
+               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'plan_attempts': plan_attempts,
+               'think_s': think_s,
                'processes': world_size,
                'agents': {}}
     if flat:
