@@ -196,11 +196,12 @@ def test_planner_node_executable_acknowledges_an_instruction(ros_domain):
                              '-p', 'use_sim_time:=false'], env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     # /hdp/status keeps its history (transient local): the acknowledgement follows 'ready'
-    echo = hdp_popen(ros_domain, 'topic', 'echo', '--timeout', '20', '/hdp/status', 'std_msgs/msg/String')
+    # Generous waits: with both cores busy the node has taken over 30 s to load and answer.
+    echo = hdp_popen(ros_domain, 'topic', 'echo', '--timeout', '60', '/hdp/status', 'std_msgs/msg/String')
     time.sleep(2.0)
-    result = hdp(ros_domain, 'topic', 'pub', '--once', '-w', '2', '/hdp/instruction',
+    result = hdp(ros_domain, 'topic', 'pub', '--once', '-w', '1', '--max-wait', '50', '/hdp/instruction',
                  'std_msgs/msg/String', "{data: 'open the drawer'}")
-    docs = echo_until(echo, lambda docs: "'open the drawer'" in docs[-1]['data'], 30)
+    docs = echo_until(echo, lambda docs: "'open the drawer'" in docs[-1]['data'], 60)
     err = interrupt(echo)
     node.send_signal(signal.SIGINT)
     node.communicate(timeout=10)
