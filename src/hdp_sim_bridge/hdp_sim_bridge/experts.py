@@ -17,6 +17,10 @@ from .trajectory_follower import ActiveTrajectory
 from .world import TIME_STEP
 
 SETTLE_VELOCITY = 0.01     # rad/s: "at rest", below the keyframe stopping delta
+# Physics steps the arm must stay still before it counts as arrived: episodes record joint states
+# every 2nd step (collect.JOINT_STATE_EVERY), and a stillness of one step (an arm jittering as it
+# pushes a toilet seat) is invisible to the keyframe rule, which would then find no keyframe there.
+STILL_STEPS = 2
 MIN_REST_S = 0.3           # rest at a waypoint with nothing else to do there
 GRIPPER_S = 0.5            # time given to the fingers
 
@@ -122,19 +126,20 @@ def rest(world, task, q_final, on_step, on_arrive, hold: float, timeout: float =
     stop and the gripper change (or the last frame) are one keyframe, not two.
     """
     world.command_arm(q_final)
-    start, still_since, arrived = world.sim_time, None, False
+    start, still_since, still_steps, arrived = world.sim_time, None, 0, False
     while world.sim_time - start < timeout:
         _step(world, task, on_step)
         if world.arm_reference_settled and np.max(np.abs(world.joint_velocities())) < SETTLE_VELOCITY:
+            still_steps += 1
             if still_since is None:
                 still_since = world.sim_time
-            if not arrived:     # once: an arm pressed on a contact stops and starts again
+            if not arrived and still_steps >= STILL_STEPS:  # once: an arm pressed on a contact stops and starts again
                 arrived = True
                 on_arrive()
-            if world.sim_time - still_since >= hold:
+            if arrived and world.sim_time - still_since >= hold:
                 return
         else:
-            still_since = None
+            still_since, still_steps = None, 0
     if not arrived:
         on_arrive()      # never quite still (e.g. pushing against a hinge): carry on from here
 
