@@ -17,7 +17,8 @@ from hdp_controller.low_level import HORIZON, SegmentRequest
 from hdp_controller.pointnet2 import PointNet2Encoder, ball_query, farthest_point_sample
 from hdp_controller.policy import conditions
 from hdp_controller.refine import goal_error, refine, smooth_poses
-from hdp_controller.rk_diffuser import RKDConfig, RKDiffuser, joint_motion, joints_from_motion
+from hdp_controller.rk_diffuser import (RKDConfig, RKDiffuser, goal_loss, joint_motion, joints_from_motion,
+                                        smoothness_loss)
 from hdp_controller.unet import TemporalUnet
 from hdp_motion import kinematics, panda
 from hdp_msgs_py.curves import read_curves
@@ -199,6 +200,42 @@ def test_training_reduces_the_loss(segments):
         losses.append(loss.item())
     assert set(parts) == {'pose', 'joint', 'joint_to_pose'}
     assert losses[-1] < 0.5 * losses[0]
+
+
+def test_goal_and_smoothness_terms_join_the_loss(segments):
+    config = RKDConfig(**{**SMALL.__dict__, 'goal_loss_weight': 2.0, 'goal_loss': 'distance',
+                          'smooth_loss_weight': 10.0})
+    torch.manual_seed(0)
+    total, parts = RKDiffuser(config).loss(_batch(segments, 4), RKDiffuser(config).draw(4))
+    assert set(parts) == {'pose', 'joint', 'joint_to_pose', 'goal', 'smooth'}
+    assert total.item() == pytest.approx(sum(parts.values()) + parts['goal'] + 9 * parts['smooth'], rel=1e-4)
+    with pytest.raises(ValueError, match='goal_loss'):
+        RKDConfig(goal_loss='l1')
+
+
+def test_smoothness_loss_sees_wiggle_not_shape():
+    s = torch.linspace(0, 1, HORIZON)[None, :, None].expand(2, HORIZON, 7)
+    motion = s ** 2
+    assert smoothness_loss(motion, motion).item() == 0
+    assert smoothness_loss(motion + 0.3 * s, motion).item() == pytest.approx(0, abs=1e-9)   # a linear offset
+    wiggle = 0.01 * (-1) ** torch.arange(HORIZON)[None, :, None]
+    assert smoothness_loss(motion + wiggle, motion).item() > 1e-4
+
+
+def test_distance_goal_loss_keeps_pulling_at_centimetres():
+    """The squared error's gradient fades with the error; its square root's does not."""
+    home = torch.tensor(panda.HOME, dtype=torch.float32)[None]
+    position, rotation = kinematics.forward_kinematics(home)
+    goal = torch.cat([position, kinematics.matrix_to_quat(rotation)], dim=-1)
+    direction = torch.tensor([[0.3, -0.2, 0.1, 0.4, 0.0, 0.2, 0.0]])
+
+    def gradient(offset, kind):
+        q = (home + offset * direction).requires_grad_()
+        goal_loss(q, goal, kind).backward()
+        return q.grad.norm().item()
+
+    assert gradient(0.01, 'squared') < 0.2 * gradient(0.1, 'squared')
+    assert gradient(0.01, 'distance') > 0.7 * gradient(0.1, 'distance')
 
 
 def test_sample_returns_goal_pose_and_joints_in_limits(segments):

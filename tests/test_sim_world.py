@@ -1,7 +1,11 @@
 """hdp_sim_bridge.world: joint limits, determinism, the gripper and the kinematic grasp."""
 
 import math
+import os
+import subprocess
+import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pybullet
@@ -314,3 +318,15 @@ def test_grasp_survives_small_fights_and_breaks_on_large_ones(world):
     world.command_arm(ik(world, hand + (0, 0.1, 0)))           # drag it 10 cm across the rail
     world.step(240)
     assert world.grasped_body() is None and world.grasp_lost_count == 1
+
+
+def test_a_simulator_process_leaves_no_generated_urdfs_behind(tmp_path):
+    """Every collection worker and evaluation rank writes object URDFs; a finished one removes them."""
+    script = ('from hdp_sim_bridge import objects; import pathlib; '
+              'print(pathlib.Path(objects.urdf_file(objects.cabinet())).parent)')
+    result = subprocess.run([sys.executable, '-c', script], text=True, capture_output=True, timeout=60,
+                            env={**os.environ, 'TMPDIR': str(tmp_path)})
+    assert result.returncode == 0, result.stderr
+    folder = Path(result.stdout.strip())
+    assert folder.parent == tmp_path
+    assert not folder.exists()

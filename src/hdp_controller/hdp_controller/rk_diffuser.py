@@ -45,6 +45,7 @@ _VELOCITY = torch.tensor(panda.VELOCITY_LIMITS, dtype=torch.float32)
 
 
 ROTATION_INPUTS = ('quaternion', 'matrix')
+GOAL_LOSSES = ('squared', 'distance')
 
 
 @dataclasses.dataclass
@@ -63,10 +64,15 @@ class RKDConfig:
     rotation_input: str = 'quaternion'         # start/goal orientation for the encoder: quaternion | matrix
     joint_reference: bool = False              # the straight line start -> goal as the joint U-Net's per-waypoint input
     goal_loss_weight: float = 0.0              # b4: FK(the predicted last joint waypoint) against the goal pose
+    goal_loss: str = 'squared'                 # b4's error: squared | distance (its square root: a pull that
+                                               # does not fade as the goal comes within centimetres)
+    smooth_loss_weight: float = 0.0            # b5: second differences of the predicted joint motion
 
     def __post_init__(self):
         if self.rotation_input not in ROTATION_INPUTS:
             raise ValueError(f'rotation_input {self.rotation_input!r}: choose from {", ".join(ROTATION_INPUTS)}')
+        if self.goal_loss not in GOAL_LOSSES:
+            raise ValueError(f'goal_loss {self.goal_loss!r}: choose from {", ".join(GOAL_LOSSES)}')
 
     @classmethod
     def from_dict(cls, values: dict) -> RKDConfig:
@@ -183,13 +189,30 @@ def straight_line_reference(start_pose: torch.Tensor, goal_pose: torch.Tensor) -
     return pose_features(_straight_line(start_pose, goal_pose, HORIZON))
 
 
-def fk_pose_loss(q: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-    """Mean squared pose error of FK(q (..., 7)) against poses (..., 7): normalised
+def fk_pose_error(q: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    """Squared pose error (...,) of FK(q (..., 7)) against poses (..., 7): normalised
     translation plus the squared Frobenius distance of the rotation matrices."""
     position, rotation = forward_kinematics(q)
     translation = ((normalize_positions(position) - normalize_positions(poses[..., :3])) ** 2).sum(-1)
-    rotation_error = ((rotation - quat_to_matrix(poses[..., 3:])) ** 2).sum((-2, -1))
-    return (translation + rotation_error).mean()
+    return translation + ((rotation - quat_to_matrix(poses[..., 3:])) ** 2).sum((-2, -1))
+
+
+def fk_pose_loss(q: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    return fk_pose_error(q, poses).mean()
+
+
+def goal_loss(q_last: torch.Tensor, goal: torch.Tensor, kind: str = 'squared') -> torch.Tensor:
+    """FK(q_last (B, 7)) against goal (B, 7): the mean squared error, or ('distance') the mean
+    of its square root, whose gradient keeps its size as the error shrinks to centimetres."""
+    error = fk_pose_error(q_last, goal)
+    return error.mean() if kind == 'squared' else (error + 1e-8).sqrt().mean()
+
+
+def smoothness_loss(motion_hat: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+    """MSE of the second differences (B, T - 2, 7) of predicted against demonstrated motion:
+    zero for a perfect prediction, so it adds no bias, but it weighs waypoint-to-waypoint
+    wiggle, which the plain MSE spreads over 64 waypoints, as much as the whole shape."""
+    return nn.functional.mse_loss(torch.diff(motion_hat, n=2, dim=1), torch.diff(motion, n=2, dim=1))
 
 
 class RKDiffuser(nn.Module):
@@ -245,9 +268,14 @@ class RKDiffuser(nn.Module):
         parts = {'pose': l_pose.item(), 'joint': l_joint.item(), 'joint_to_pose': l_fk.item()}
         if self.config.goal_loss_weight:
             # The FK term above weighs the goal as 1 of 64 waypoints; the goal is what the segment is for.
-            l_goal = fk_pose_loss(joints_hat[:, -1], batch['goal_pose'])
+            l_goal = goal_loss(joints_hat[:, -1], batch['goal_pose'], self.config.goal_loss)
             total = total + self.config.goal_loss_weight * l_goal
             parts['goal'] = l_goal.item()
+        if self.config.smooth_loss_weight:
+            # The joint method executes the raw sample: its wiggle is the arm's.
+            l_smooth = smoothness_loss(motion_hat, motion)
+            total = total + self.config.smooth_loss_weight * l_smooth
+            parts['smooth'] = l_smooth.item()
         return total, parts
 
     @torch.no_grad()

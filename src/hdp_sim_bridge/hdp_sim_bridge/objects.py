@@ -8,10 +8,11 @@ per-process cache directory. Every object's frame sits on the table top with
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import functools
 import hashlib
-import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -91,8 +92,10 @@ def _robot(name: str, body: str) -> str:
 
 @functools.cache
 def _cache_dir() -> Path:
-    path = Path(tempfile.gettempdir()) / f'hdp_objects_{os.getuid()}_{os.getpid()}'
-    path.mkdir(parents=True, exist_ok=True)
+    """This process's folder of generated URDFs (pybullet loads files, not strings), removed at exit:
+    every simulator process (collection workers, evaluation ranks, the bridge) makes one."""
+    path = Path(tempfile.mkdtemp(prefix='hdp_objects_'))
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
     return path
 
 
