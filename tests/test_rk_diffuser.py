@@ -150,6 +150,24 @@ def test_preprocessing_is_cached(episodes, tmp_path):
     assert np.array_equal(first.joints, again.joints) and np.array_equal(first.task, again.task)
 
 
+def test_training_data_can_be_a_segments_file_and_bad_ones_are_refused(episodes, tmp_path):
+    direct = load_segments(episodes, n_points=64, cache_dir=tmp_path, workers=1)
+    cache, = tmp_path.glob('*.npz')
+    from_file = load_segments(cache, n_points=64)
+    assert np.array_equal(direct.points, from_file.points) and np.array_equal(direct.seed, from_file.seed)
+    with pytest.raises(ValueError, match='points has shape'):
+        load_segments(cache, n_points=128)
+    half = {k: (v.astype(np.float16) if v.dtype == np.float32 else v) for k, v in vars(direct).items()}
+    np.savez(tmp_path / 'half.npz', **half)          # a smaller copy to ship still trains in float32
+    assert load_segments(tmp_path / 'half.npz', n_points=64).points.dtype == np.float32
+    np.savez(tmp_path / 'other.npz', joints=direct.joints)
+    with pytest.raises(ValueError, match='not a segments file'):
+        load_segments(tmp_path / 'other.npz', n_points=64)
+    (tmp_path / 'junk.npz').write_bytes(b'not a zip')
+    with pytest.raises(ValueError):
+        load_segments(tmp_path / 'junk.npz', n_points=64)
+
+
 # --- networks ---------------------------------------------------------------------------
 
 def test_farthest_point_sampling_and_ball_query():

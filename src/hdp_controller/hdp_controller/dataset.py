@@ -29,6 +29,7 @@ import functools
 import hashlib
 import json
 import multiprocessing
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -134,7 +135,10 @@ def _front_frame(episode) -> str:
 
 def load_segments(data_dir, n_points: int = 1024, cache_dir=None, workers: int = 2) -> Segments:
     """Every segment of the successful episodes in ``data_dir``, from the cache when it is current
-    (else preprocessed by ``workers`` processes)."""
+    (else preprocessed by ``workers`` processes). ``data_dir`` may also be a preprocessed segments
+    file (a cache .npz), so training can run where the episodes are not."""
+    if Path(data_dir).is_file():
+        return read_segments(data_dir, n_points)
     paths = list_episodes(data_dir)
     if not paths:
         raise ValueError(f'no successful episodes in {data_dir}')
@@ -142,8 +146,7 @@ def load_segments(data_dir, n_points: int = 1024, cache_dir=None, workers: int =
         [p.name, sum(f.stat().st_mtime_ns for f in p.iterdir())] for p in paths]).encode()).hexdigest()[:16]
     cache = Path(cache_dir or Path(data_dir) / '.cache') / f'rkd_segments_{key}.npz'
     if cache.is_file():
-        with np.load(cache, allow_pickle=False) as data:
-            return Segments(**{name: data[name] for name in data.files})
+        return read_segments(cache, n_points)
     job = functools.partial(episode_segments, n_points=n_points)
     with multiprocessing.get_context('spawn').Pool(workers) as pool:
         rows = [seg for segs in tqdm(pool.imap(job, paths, chunksize=4), total=len(paths),
@@ -156,6 +159,31 @@ def load_segments(data_dir, n_points: int = 1024, cache_dir=None, workers: int =
     np.savez(tmp, **dataclasses.asdict(segs))
     tmp.replace(cache)
     return segs
+
+
+def read_segments(path, n_points: int) -> Segments:
+    """A segments .npz (untrusted: no pickles, every field checked) -> Segments, floats as float32."""
+    names = [f.name for f in dataclasses.fields(Segments)]
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if sorted(data.files) != sorted(names):
+                raise ValueError(f'{path}: not a segments file (fields {sorted(data.files)})')
+            arrays = {name: data[name] for name in names}
+    except (OSError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f'{path}: unreadable segments file ({err})') from None
+    s = len(arrays['joints'])
+    shapes = {'joints': (s, HORIZON, 7), 'poses': (s, HORIZON, 7), 'qd0': (s, 7), 'gripper': (s, 2),
+              'rank': (s,), 'points': (s, n_points, 3), 'task': (s,), 'seed': (s,)}
+    for name, shape in shapes.items():
+        if arrays[name].shape != shape:
+            raise ValueError(f'{path}: {name} has shape {arrays[name].shape}, expected {shape} '
+                             f'({n_points} points, {HORIZON} waypoints)')
+    if arrays['task'].dtype.kind != 'U' or arrays['seed'].dtype.kind not in 'iu':
+        raise ValueError(f'{path}: task must be strings and seed integers')
+    floats = {name: np.asarray(arrays[name], np.float32) for name in names if name not in ('task', 'seed')}
+    if not all(np.isfinite(v).all() for v in floats.values()):
+        raise ValueError(f'{path}: non-finite values')
+    return Segments(**{**arrays, **floats})
 
 
 def draw_augmentation(batch_size: int, generator: torch.Generator | None = None,
