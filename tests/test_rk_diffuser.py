@@ -420,6 +420,26 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
         checkpoint.load_model(tmp_path / 'shape.pt')
 
 
+def test_validation_losses_go_into_the_curves_and_training_episodes_are_refused(episodes, tmp_path):
+    from hdp_controller.train import TrainConfig, train
+    segs = load_segments(episodes, n_points=64, cache_dir=tmp_path, workers=1)
+    held_out = {**vars(segs), 'seed': segs.seed + 1000}          # the same segments as if never trained on
+    np.savez(tmp_path / 'val.npz', **held_out)
+    model_config = RKDConfig(unet_dim=8, point_features=16, point_width=8, n_points=64, diffusion_steps=10)
+    train_config = TrainConfig(steps=4, batch_size=2, save_every=2, warmup_steps=1)
+    quiet = lambda *a, **k: None                                  # noqa: E731
+    out = train(episodes, tmp_path / 'rkd.pt', model_config, train_config, cache_dir=tmp_path,
+                val_data=tmp_path / 'val.npz', log=quiet)
+    columns, rows = read_curves(tmp_path / 'rkd_curves.csv')
+    assert {'val_pose', 'val_joint', 'val_joint_to_pose'} <= set(columns)
+    assert [r['step'] for r in rows if r['val_joint'] is not None] == [2, 4]      # at every save
+    assert all(np.isfinite(r['val_pose']) and r['val_pose'] > 0 for r in rows if r['val_pose'] is not None)
+    assert out.is_file()
+    with pytest.raises(ValueError, match='holds training episodes'):
+        train(episodes, tmp_path / 'leak.pt', model_config, train_config, cache_dir=tmp_path,
+              val_data=episodes, log=quiet)
+
+
 def test_train_cli_runs_and_resumes(episodes, tmp_path):
     config = tmp_path / 'small.yaml'
     config.write_text('model: {unet_dim: 8, point_features: 16, point_width: 8, n_points: 64, diffusion_steps: 10}\n'

@@ -23,6 +23,8 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--threads', type=int, help='torch CPU threads (default: torch decides)')
     parser.add_argument('--init', help='start from the weights of this checkpoint (fine-tuning: fresh optimiser '
                         'and schedule; the model config must match)')
+    parser.add_argument('--val-data', help='validation episodes (or their segments file), never trained on: the EMA '
+                        'model\'s losses on them go into the curves at every save (val_* columns)')
     parser.add_argument('--cache', help='preprocessing cache directory (default DATA/.cache)')
     parser.set_defaults(func=_train)
 
@@ -48,7 +50,7 @@ def _train(args) -> int:
     print(json.dumps(as_dict(configs)))
     try:
         out = train(args.data, args.out, model_config, train_config, torch_device(args.device), args.cache,
-                    init=args.init)
+                    init=args.init, val_data=args.val_data)
     except ValueError as err:
         raise SystemExit(f'hdp train low-level: {err}') from None
     print(f'wrote {out}')

@@ -2,7 +2,8 @@
 
 Writes ``OUT`` (the EMA weights + config + provenance: what inference and the
 release need), ``OUT.resume`` (raw weights, optimiser and schedule) and the
-training curves (``<OUT stem>_curves.csv``: losses and learning rate).
+training curves (``<OUT stem>_curves.csv``: losses and learning rate, and with
+validation episodes the EMA model's losses on them at every save).
 Starting again with the same OUT, data and config continues from
 ``OUT.resume``; a different config refuses to mix.
 
@@ -77,10 +78,33 @@ def step_batch(dataset, model: RKDiffuser, train_config: TrainConfig, step: int,
     return batch, {k: v[rank::world] for k, v in draws.items()}
 
 
+def validation_losses(model: RKDiffuser, dataset, device: str, batch_size: int = 64) -> dict:
+    """{'val_<part>': mean} of ``model``'s loss parts on ``dataset`` as recorded (no augmentation,
+    no condition dropout) with noise and diffusion steps seeded the same at every call, so the
+    rows of a run compare with each other."""
+    generator = torch.Generator().manual_seed(0)
+    sums, count = {}, 0
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        for start in range(0, len(dataset), batch_size):
+            items = [dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]
+            batch = augment({k: torch.stack([item[k] for item in items]) for k in items[0]})
+            draws = model.draw(len(items), generator)
+            draws['drop'][:] = False
+            _, parts = model.loss({k: v.to(device) for k, v in batch.items()}, draws)
+            for name, value in parts.items():
+                sums[name] = sums.get(name, 0.0) + value * len(items)
+            count += len(items)
+    model.train(was_training)
+    return {f'val_{name}': total / count for name, total in sums.items()}
+
+
 def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, device: str = 'cpu',
-          cache_dir=None, init=None, log=print) -> Path:
+          cache_dir=None, init=None, val_data=None, log=print) -> Path:
     """Train and write ``out``. ``init``: a checkpoint whose weights start the
-    run (fine-tuning with a fresh optimiser and schedule); its config must match."""
+    run (fine-tuning with a fresh optimiser and schedule); its config must match.
+    ``val_data``: episodes (or their segments file) never trained on, for the curves."""
     out = Path(out)
     resume_path = out.with_name(out.name + '.resume')
     rank, world, device = distributed.start(device)
@@ -98,6 +122,15 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     segs = all_segments.moving()
     log(f'{len(all_segments) - len(segs)} of {len(all_segments)} segments dropped: the arm does not move in them')
     dataset = SegmentDataset(segs)
+    validation = None
+    if val_data is not None:
+        val_segs = load_segments(val_data, model_config.n_points, cache_dir).moving()
+        shared = sorted({f'{t} {s}' for t, s in zip(val_segs.task, val_segs.seed)} &
+                        {f'{t} {s}' for t, s in zip(segs.task, segs.seed)})
+        if shared:
+            raise ValueError(f'validation data {val_data} holds training episodes ({", ".join(shared[:3])}...)')
+        validation = SegmentDataset(val_segs)
+        log(f'validating on {len(val_segs)} segments at every save')
     model = RKDiffuser(model_config).to(device)
     init_info = _load_init(model, model_config, init) if init else None
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(train_config.ema_decay))
@@ -143,10 +176,12 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
             losses.append(parts)
             bar.update(1)
             bar.set_postfix({k: f'{np.mean([p[k] for p in losses[-50:]]):.4f}' for k in parts})
-            if lead and (step % CURVE_EVERY == 0 or step == train_config.steps):
+            saving = step % train_config.save_every == 0 or step == train_config.steps
+            if lead and (step % CURVE_EVERY == 0 or saving):
+                scores = validation_losses(ema.module, validation, device) if saving and validation is not None else {}
                 curves.add(step, lr=schedule.get_last_lr()[0],
-                           **{k: float(np.mean([p[k] for p in losses[-CURVE_EVERY:]])) for k in parts})
-            if step % train_config.save_every == 0 or step == train_config.steps:
+                           **{k: float(np.mean([p[k] for p in losses[-CURVE_EVERY:]])) for k in parts}, **scores)
+            if saving:
                 digests = distributed.gather(distributed.weights_digest(model), world)
                 if len(set(digests)) > 1:
                     raise RuntimeError(f'the {world} processes hold different weights at step {step}')
