@@ -9,8 +9,8 @@ import json
 def configure_train(parser: argparse.ArgumentParser) -> None:
     parser.description = ('Train RK-Diffuser (pose + joint diffusers, distilled through differentiable '
                           'Panda kinematics) on the successful episodes in DATA. Resumes when OUT.resume exists.')
-    parser.add_argument('--data', required=True, help='directory of rosbag2 episodes (hdp collect), or its preprocessed segments file '
-                        '(DATA/.cache/rkd_segments_*.npz) to train where the episodes are not')
+    parser.add_argument('--data', required=True, help='directory of rosbag2 episodes (hdp collect), or its '
+                        'preprocessed segments file (DATA/.cache/rkd_segments_*.npz) to train where the episodes are not')
     parser.add_argument('--out', required=True, help='checkpoint to write (OUT.resume holds the training state)')
     parser.add_argument('--config', help='YAML file with "model:" (RKDConfig) and/or "train:" (TrainConfig) '
                         'sections (hdp_msgs_py.config; unknown keys are refused)')

@@ -82,6 +82,10 @@ class Segments:
         travel = np.linalg.norm(np.diff(self.joints, axis=1), axis=2).sum(axis=1)
         return self.select(travel >= min_travel)
 
+    def episodes(self) -> set[tuple[str, int]]:
+        """(task, seed) of every episode the segments come from."""
+        return {(str(t), int(s)) for t, s in zip(self.task, self.seed)}
+
     def training_seeds(self) -> dict[str, list[int]]:
         return {str(t): sorted({int(s) for s in self.seed[self.task == t]}) for t in np.unique(self.task)}
 

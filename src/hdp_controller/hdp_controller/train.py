@@ -125,10 +125,10 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
     validation = None
     if val_data is not None:
         val_segs = load_segments(val_data, model_config.n_points, cache_dir).moving()
-        shared = sorted({f'{t} {s}' for t, s in zip(val_segs.task, val_segs.seed)} &
-                        {f'{t} {s}' for t, s in zip(segs.task, segs.seed)})
+        shared = sorted(val_segs.episodes() & segs.episodes())
         if shared:
-            raise ValueError(f'validation data {val_data} holds training episodes ({", ".join(shared[:3])}...)')
+            raise ValueError(f'validation data {val_data} holds training episodes '
+                             f'({", ".join(f"{t} {s}" for t, s in shared[:3])}...)')
         validation = SegmentDataset(val_segs)
         log(f'validating on {len(val_segs)} segments at every save')
     model = RKDiffuser(model_config).to(device)
