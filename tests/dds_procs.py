@@ -77,6 +77,9 @@ def spin_until(node, done, timeout: float) -> None:
             rclpy.spin_once(node, timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         return      # shut down from outside: the caller reports what it saw
+    except RuntimeError:
+        if not ros.shutting_down():     # the signal landed while the wait set was built
+            raise
 
 
 def emit(**facts):
