@@ -16,6 +16,7 @@ import pytest
 from PIL import Image
 
 from hdp_bringup.demo import cli, cpu, episode_log, figures, media
+from hdp_bringup.launch_cli import NODES, default_params_file, node_commands
 
 
 def _hdp(*args) -> list[str]:
@@ -218,11 +219,25 @@ def test_argument_problems_are_found_before_anything_starts(tmp_path):
                           (('--episodes', '0'), '--episodes >= 1'), (('--seed', '-1'), '--seed must be >= 0'),
                           (('--timeout', '0'), '--timeout > 0'), (('--instruction', '  '), '--instruction is empty'),
                           (('--params-file', str(tmp_path / 'no.yaml')), 'no parameter file'),
+                          (('--agent-checkpoint', str(tmp_path / 'no.pt')), '--agent-checkpoint: no file'),
+                          (('--low-level-checkpoint', str(tmp_path / 'no.pt')), '--low-level-checkpoint: no file'),
                           (('--instruction', 'open it', '--phrasing', 'seen'), 'exclude each other')):
         assert problem in cli.argument_problem(_parse('--task', 'reach_target', *args), tasks), args
     with pytest.raises(SystemExit) as exit_:
         _parse('--task', 'reach_target', '--method', 'teleport')
     assert exit_.value.code == 2
+
+
+def test_checkpoint_flags_reach_the_nodes_that_load_them(tmp_path):
+    agent, low_level = tmp_path / 'agent.pt', tmp_path / 'rkd.pt'
+    plain = cli.parameter_overrides(_parse('--task', 'open_box', '--seed', '1003'))
+    assert 'sim_bridge_node:seed:=1003' in plain and not any(':checkpoint:=' in o for o in plain)
+    overrides = cli.parameter_overrides(_parse('--task', 'open_box', '--agent-checkpoint', str(agent),
+                                               '--low-level-checkpoint', str(low_level)))
+    assert f'planner_node:checkpoint:={agent}' in overrides
+    assert f'controller_node:checkpoint:={low_level}' in overrides
+    commands = node_commands(list(NODES), default_params_file(), overrides)
+    assert f'checkpoint:={low_level}' in ' '.join(commands['controller_node'])
 
 
 def _alive(pid: int) -> bool:

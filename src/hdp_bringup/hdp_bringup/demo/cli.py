@@ -73,6 +73,11 @@ def configure(parser) -> None:
                         help='seconds per episode, instruction to the end (default 180)')
     parser.add_argument('--params-file', type=Path, default=None,
                         help=f'node parameters (default: {default_params_file()})')
+    parser.add_argument('--agent-checkpoint', type=Path, default=None,
+                        help="planner_node's agent (default: the parameter file's, models/hdp_nbp_agent.pt); "
+                             'the same flag as hdp eval hierarchy, so both run the same models')
+    parser.add_argument('--low-level-checkpoint', type=Path, default=None,
+                        help="controller_node's RK-Diffuser (default: the parameter file's, models/rk_diffuser.pt)")
     parser.add_argument('--json', action='store_true',
                         help='print summary.json on stdout (progress goes to stderr)')
     parser.add_argument('--record', action='store_true',
@@ -96,9 +101,24 @@ def argument_problem(args, tasks) -> str | None:
     params = args.params_file or default_params_file()
     if not params.is_file():
         return f'no parameter file {params}'
+    for flag in ('agent_checkpoint', 'low_level_checkpoint'):
+        path = getattr(args, flag, None)
+        if path is not None and not path.is_file():
+            return f'--{flag.replace("_", "-")}: no file {path}'
     if getattr(args, 'record', False) and (args.out / 'bag').exists():
         return f'{args.out / "bag"} exists: a recording is never overwritten; move it or choose another --out'
     return None
+
+
+def parameter_overrides(args) -> list[str]:
+    """'node:parameter:=value' for what the arguments set over the parameter file."""
+    overrides = [f'sim_bridge_node:task:={args.task}', f'sim_bridge_node:seed:={args.seed}',
+                 f'controller_node:method:={args.method}', f'controller_node:sampler:={args.sampler}']
+    if args.agent_checkpoint:
+        overrides.append(f'planner_node:checkpoint:={args.agent_checkpoint.resolve()}')
+    if args.low_level_checkpoint:
+        overrides.append(f'controller_node:checkpoint:={args.low_level_checkpoint.resolve()}')
+    return overrides
 
 
 def json_stdout():
@@ -126,9 +146,7 @@ def run(args) -> int:
     if problem:
         print(f'hdp demo: {problem}', file=sys.stderr)
         return 2
-    overrides = [f'sim_bridge_node:task:={args.task}', f'sim_bridge_node:seed:={args.seed}',
-                 f'controller_node:method:={args.method}', f'controller_node:sampler:={args.sampler}']
-    commands = node_commands(list(NODES), args.params_file or default_params_file(), overrides)
+    commands = node_commands(list(NODES), args.params_file or default_params_file(), parameter_overrides(args))
     logs = args.out / 'logs'
     logs.mkdir(parents=True, exist_ok=True)
     say(f'ROS_DOMAIN_ID={domain} ' + ('(picked at random; set ROS_DOMAIN_ID to choose)' if picked
