@@ -442,3 +442,20 @@ def test_an_episode_whose_cameras_never_pair_says_so(monkeypatch):
     monkeypatch.setattr(dataset, 'camera_frames', lambda episode: [])
     with pytest.raises(ValueError, match=r"demos/open_drawer_0001: no sample: no frame with every camera's"):
         dataset.episode_samples(episode)
+
+
+def test_keyframe_metrics_split_each_task_by_where_in_the_episode_a_sample_is():
+    from hdp_planner.dataset import KeyframeDataset
+    from hdp_planner.evaluate import keyframe_metrics, task_metrics
+    dataset = KeyframeDataset([{'task': 'open_grill', 'target_open': [1, 0, 0]},
+                               {'task': 'open_grill', 'target_open': [1, 0, 0]},
+                               {'task': 'reach_target', 'target_open': [1]}])
+    errors = {'translation_cm': np.array([1.0, 0.5, 8.0, 3.0, 0.5, 6.0, 2.0]),
+              'rotation_deg': np.zeros(7), 'rotation_symmetric_deg': np.zeros(7), 'gripper_accuracy': np.ones(7)}
+    by_keyframe = keyframe_metrics(dataset, errors)
+    assert list(by_keyframe) == ['open_grill keyframe 0', 'open_grill keyframe 1', 'open_grill keyframe 2',
+                                 'reach_target keyframe 0']
+    first = by_keyframe['open_grill keyframe 0']
+    assert (first['translation_cm'], first['samples']) == (2.0, 2)
+    assert by_keyframe['open_grill keyframe 2']['translation_cm'] == 7.0
+    assert task_metrics(dataset, errors)['open_grill']['translation_cm'] == pytest.approx(19 / 6, abs=1e-4)

@@ -100,6 +100,8 @@ def configure_eval(parser) -> None:
     parser.add_argument('--cache', type=Path, help='decoded-sample cache (default: <data>_cache)')
     parser.add_argument('--device', default='cpu', help='cpu or cuda (default cpu)')
     parser.add_argument('--threads', type=int, help='torch CPU threads (default: torch decides)')
+    parser.add_argument('--by-keyframe', action='store_true',
+                        help="also a row per task and keyframe of its episodes (where a task's predictions go wrong)")
     parser.add_argument('--json', type=Path, help='also write the metrics here')
     parser.set_defaults(func=run_eval)
 
@@ -107,7 +109,7 @@ def configure_eval(parser) -> None:
 def run_eval(args) -> int:
     from .checkpoint import CheckpointError, load_model
     from .dataset import KeyframeDataset
-    from .evaluate import PHRASING_LABELS, format_metrics, offline_metrics
+    from .evaluate import PHRASING_LABELS, format_metrics, keyframe_metrics, sample_errors, task_metrics
     _threads(args)
     try:
         model, checkpoint = load_model(args.checkpoint, args.device)
@@ -121,9 +123,13 @@ def run_eval(args) -> int:
         return 1
     results = {}
     for phrasing, label in PHRASING_LABELS.items():
-        results[label] = offline_metrics(model, dataset, phrasing)
+        errors = sample_errors(model, dataset, phrasing)
+        results[label] = task_metrics(dataset, errors)
         print(f'\n{args.checkpoint} (step {checkpoint["step"]}) on {args.data}, {label}:\n'
               f'{format_metrics(results[label])}')
+        if args.by_keyframe:
+            results[f'{label}, by keyframe'] = keyframe_metrics(dataset, errors)
+            print(f'\nby keyframe:\n{format_metrics(results[f"{label}, by keyframe"])}')
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

@@ -31,10 +31,10 @@ def evaluation_item(dataset: KeyframeDataset, i: int, rng: np.random.Generator, 
     return item
 
 
-def offline_metrics(model: NextBestPoseNet, dataset: KeyframeDataset, phrasing: str = 'seen',
-                    batch: int = 32, seed: int = 0) -> dict:
-    """{'overall' | task: {'translation_cm', 'rotation_deg', 'rotation_symmetric_deg',
-    'gripper_accuracy', 'samples'}}, instructions in ``phrasing`` (seen, heldout, paraphrase)."""
+def sample_errors(model: NextBestPoseNet, dataset: KeyframeDataset, phrasing: str = 'seen',
+                  batch: int = 32, seed: int = 0) -> dict[str, np.ndarray]:
+    """{'translation_cm' | 'rotation_deg' | 'rotation_symmetric_deg' | 'gripper_accuracy': (N,)}
+    of every sample of ``dataset``, instructions in ``phrasing`` (seen, heldout, paraphrase)."""
     rng = np.random.default_rng(seed)
     device = next(model.parameters()).device
     was_training = model.training
@@ -54,11 +54,30 @@ def offline_metrics(model: NextBestPoseNet, dataset: KeyframeDataset, phrasing: 
         errors['rotation_symmetric_deg'].append(np.degrees(np.minimum(angle, flipped)))
         errors['gripper_accuracy'].append(predicted.gripper_open.cpu().numpy() == [i.target_open for i in items])
     model.train(was_training)
-    values = {name: np.concatenate(parts) for name, parts in errors.items()}
-    metrics = {'overall': _summary(values, np.ones(len(dataset), dtype=bool))}
+    return {name: np.concatenate(parts) for name, parts in errors.items()}
+
+
+def offline_metrics(model: NextBestPoseNet, dataset: KeyframeDataset, phrasing: str = 'seen',
+                    batch: int = 32, seed: int = 0) -> dict:
+    """{'overall' | task: {'translation_cm', 'rotation_deg', 'rotation_symmetric_deg',
+    'gripper_accuracy', 'samples'}}, instructions in ``phrasing`` (seen, heldout, paraphrase)."""
+    return task_metrics(dataset, sample_errors(model, dataset, phrasing, batch, seed))
+
+
+def task_metrics(dataset: KeyframeDataset, errors: dict) -> dict:
+    """offline_metrics' summaries (means) of sample_errors' ``errors``."""
+    metrics = {'overall': _summary(errors, np.ones(len(dataset), dtype=bool))}
     for task in np.unique(dataset.tasks):
-        metrics[str(task)] = _summary(values, dataset.tasks == task)
+        metrics[str(task)] = _summary(errors, dataset.tasks == task)
     return metrics
+
+
+def keyframe_metrics(dataset: KeyframeDataset, errors: dict) -> dict:
+    """{'task keyframe k': summary} of sample_errors' ``errors``: where in an episode a task's
+    predictions go wrong (k = 0 predicts the first keyframe from the episode's start)."""
+    keyframe = dataset.index[:, 1]
+    return {f'{task} keyframe {k}': _summary(errors, (dataset.tasks == task) & (keyframe == k))
+            for task in np.unique(dataset.tasks) for k in np.unique(keyframe[dataset.tasks == task])}
 
 
 def _summary(values: dict, chosen: np.ndarray) -> dict:
