@@ -21,7 +21,7 @@ from hdp_msgs_py.curves import read_curves
 from hdp_msgs_py.workspace import WORKSPACE
 from hdp_planner import checkpoint, language, rotations, voxels
 from hdp_planner.agent import NextBestPoseAgent
-from hdp_planner.dataset import KeyframeDataset, augment
+from hdp_planner.dataset import KeyframeDataset, draw_move
 from hdp_planner.model import ModelConfig, NextBestPoseNet, proprio_vector
 from hdp_planner.train import TrainConfig, losses, train, training_batch
 from hdp_sim_bridge.tasks import TASKS
@@ -174,7 +174,8 @@ def test_augmentation_keeps_target_and_orientation_on_the_points(seed):
     # Markers at the target and 5 cm along the hand's x and z axes, among other points.
     markers = np.stack([target, target + 0.05 * axes[:, 0], target + 0.05 * axes[:, 2]])
     cloud = np.concatenate([markers, rng.uniform(WORKSPACE[0], WORKSPACE[1], (50, 3))]).astype(np.float32)
-    moved, new_target, new_quat = augment(cloud, target, quat, rng)
+    move = draw_move(target, rng)
+    moved, new_target, new_quat = move.points(cloud), move.points(target[None])[0], move.orientations(quat)
     new_axes = quat_to_matrix(new_quat)
     assert np.allclose(moved[0], new_target, atol=1e-5)
     assert np.allclose(moved[1], new_target + 0.05 * new_axes[:, 0], atol=1e-5)
@@ -290,7 +291,7 @@ def test_train_cli_config_unknown_keys_and_bad_values_fail_with_one_line(tmp_pat
     for text, expected in [
             ('model: {grid_size: 8, channel: [4, 8, 8]}\n',
              f'hdp train high-level: bad configuration: {config}: model: unknown key channel; known: vocabulary, '
-             'grid_size, channels, language_dim, max_words, fine_half_extent, head_hidden, language_encoder'),
+             'grid_size, channels, language_dim, max_words, fine_half_extent, head_hidden, language_encoder, proprio'),
             ('train: {steps: 2, batch_size: 4}\n',
              f'hdp train high-level: bad configuration: {config}: train: unknown key batch_size; known: steps, '
              'batch, lr, seed, val_every, save_every'),
@@ -416,6 +417,59 @@ def test_proprio_vector_scales_to_the_joint_limits():
     from hdp_motion import panda
     assert np.allclose(proprio_vector(panda.LOWER, False), [-1] * 8)
     assert np.allclose(proprio_vector(panda.UPPER, True), [1] * 8)
+
+
+def test_hand_vector_scales_the_position_over_the_workspace_and_keeps_two_axes():
+    from hdp_planner.model import hand_vector
+    vector = hand_vector(WORKSPACE, np.array([[0, 0, 0, 1.0], [0, 0, 0, 1.0]]), [True, False])
+    assert vector.shape == (2, 10)
+    assert np.allclose(vector[:, 0], [1, -1])
+    assert np.allclose(vector[0, 1:4], -1) and np.allclose(vector[1, 1:4], 1)
+    assert np.allclose(vector[:, 4:], [1, 0, 0, 0, 1, 0])       # the x and y axes of the identity
+
+
+@pytest.mark.parametrize('seed', range(3))
+def test_hand_proprio_moves_with_the_augmented_scene(seed):
+    """The hand's pose relative to the target is what the scene shows; augmentation must keep it."""
+    from hdp_motion import panda
+    from hdp_planner.model import hand_pose
+    rng = np.random.default_rng(seed)
+    episode = synthetic_episode(rng)
+    episode['joint_positions'] = np.stack([panda.HOME, panda.HOME + 0.2])
+    dataset = KeyframeDataset([episode], proprio='hand')
+    hand_xyz, hand_quat = hand_pose(episode['joint_positions'])
+    for s in range(2):
+        plain, moved = dataset.item(s, rng), dataset.item(s, rng, augmented=True)
+        assert plain.proprio.shape == moved.proprio.shape == (10,)
+        for item in (plain, moved):
+            position = WORKSPACE[0] + (item.proprio[1:4] + 1) / 2 * (WORKSPACE[1] - WORKSPACE[0])
+            x_axis, y_axis = item.proprio[4:7], item.proprio[7:10]
+            target_axes = quat_to_matrix(item.target_quat)
+            # The target seen from the hand, and the target's axes in the hand's: unchanged.
+            hand_axes = np.stack([x_axis, y_axis, np.cross(x_axis, y_axis)], 1)
+            assert np.allclose(hand_axes.T @ (item.target_xyz - position),
+                               quat_to_matrix(hand_quat[s]).T @ (episode['target_xyz'][s] - hand_xyz[s]), atol=1e-4)
+            assert np.allclose(hand_axes.T @ target_axes,
+                               quat_to_matrix(hand_quat[s]).T @ quat_to_matrix(episode['target_quat'][s]), atol=1e-4)
+        assert not np.allclose(plain.proprio, moved.proprio)
+
+
+def test_an_agent_trained_on_the_hand_pose_reads_it_from_the_joint_positions():
+    from hdp_motion import panda
+    from hdp_planner.model import hand_pose, hand_vector
+    torch.manual_seed(0)
+    model = NextBestPoseNet(ModelConfig(vocabulary=tuple(language.task_vocabulary()), proprio='hand', **TINY))
+    seen = []
+    model.proprio.register_forward_hook(lambda module, inputs, output: seen.append(inputs[0]))
+    intrinsics = Intrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)
+    depth = np.full((48, 64), 0.8, np.float32)
+    looking_down_at_the_table = np.eye(4)
+    looking_down_at_the_table[:3, 3] = [0.5, 0.0, WORKSPACE[0, 2] - 0.6]
+    NextBestPoseAgent(model).predict({'front': (np.zeros((48, 64, 3), np.uint8), depth)}, {'front': intrinsics},
+                                     {'front': looking_down_at_the_table}, 'open the middle drawer', (panda.HOME, False))
+    assert np.allclose(seen[0].numpy(), hand_vector(*hand_pose(panda.HOME[None]), [False]), atol=1e-6)
+    with pytest.raises(ValueError, match="proprio 'elbow' is not one of"):
+        ModelConfig(vocabulary=('open',), proprio='elbow')
 
 
 @pytest.mark.parametrize('command', [['train', 'high-level'], ['eval', 'high-level-offline']])

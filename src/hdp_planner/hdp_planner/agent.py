@@ -14,7 +14,7 @@ import torch
 from hdp_msgs_py.conversions import Intrinsics, camera_info_to_intrinsics, transform_to_matrix
 
 from . import checkpoint
-from .model import NextBestPoseNet, proprio_vector
+from .model import NextBestPoseNet, hand_pose, hand_vector, proprio_vector
 from .voxels import collate_clouds, scene_points
 
 
@@ -97,7 +97,11 @@ class NextBestPoseAgent:
         points = scene_points(frames, intrinsics, to_world)
         xyz, rgb, cloud = collate_clouds([points], self.device)
         joint_positions, gripper_open = proprio
-        proprio_tensor = torch.as_tensor(proprio_vector(joint_positions, gripper_open)[None], device=self.device)
+        if self.model.config.proprio == 'hand':
+            vector = hand_vector(*hand_pose(np.asarray(joint_positions)[None]), [gripper_open])
+        else:
+            vector = proprio_vector(joint_positions, gripper_open)[None]
+        proprio_tensor = torch.as_tensor(vector, device=self.device)
         prediction = self.model.predict(xyz, rgb, cloud, [instruction], proprio_tensor)
         return NextBestPose(prediction.xyz[0].cpu().numpy().astype(np.float64), prediction.quat[0],
                             bool(prediction.gripper_open[0]), float(prediction.confidence[0]), points)

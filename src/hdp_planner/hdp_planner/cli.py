@@ -117,7 +117,7 @@ def run_eval(args) -> int:
         print(err, file=sys.stderr)
         return 1
     try:
-        dataset = KeyframeDataset.from_directory(args.data, args.cache)
+        dataset = KeyframeDataset.from_directory(args.data, args.cache, proprio=model.config.proprio)
     except (FileNotFoundError, ValueError) as err:
         print(f'hdp eval high-level-offline: {err}', file=sys.stderr)
         return 1

@@ -22,17 +22,17 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from hdp_motion import kinematics
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import camera_info_to_intrinsics, image_to_numpy, transform_to_matrix
 from hdp_msgs_py.episodes import list_episodes, read_episode
 from hdp_msgs_py.workspace import WORKSPACE
 
 from . import language, rotations
-from .model import proprio_vector
+from .model import hand_pose, hand_vector, proprio_vector
 from .voxels import scene_points
 
 CACHE_VERSION = 3           # 3: forward kinematics by hdp_motion.kinematics (was PyBullet)
@@ -46,13 +46,6 @@ TRANSLATION_RANGE = 0.125     # m, each axis
 YAW_RANGE = 45                # deg
 YAW_STEP = 5                  # deg
 MAX_REDRAWS = 10
-
-
-def ee_pose(joint_positions) -> tuple[np.ndarray, np.ndarray]:
-    """xyz (N, 3) m and quaternions (N, 4) xyzw of panda_grasptarget for (N, 7) joint positions."""
-    import torch
-    pose = kinematics.fk_pose(torch.as_tensor(np.asarray(joint_positions, dtype=np.float64))).numpy()
-    return pose[:, :3], pose[:, 3:]
 
 
 def _depth_metres(msg) -> np.ndarray:
@@ -114,12 +107,12 @@ def episode_samples(episode) -> dict:
     plus task, variation and seed."""
     js = episode.joint_states
     keyframes = np.array(episode.keyframes(), dtype=np.int64)
-    keyframe_xyz, keyframe_quat = ee_pose(js.position[keyframes])
+    keyframe_xyz, keyframe_quat = hand_pose(js.position[keyframes])
     intrinsics, to_world = camera_geometry(episode)
     clouds, state, target = [], [], []
     for t, frame in camera_frames(episode):
         now = max(int(np.searchsorted(js.t, t, side='right')) - 1, 0)      # the state the frame shows
-        xyz, quat = ee_pose(js.position[now][None])
+        xyz, quat = hand_pose(js.position[now][None])
         acts = ((np.linalg.norm(keyframe_xyz - xyz, axis=1) > NO_OP_DISTANCE)
                 | (rotations.angle_between(keyframe_quat, quat) > NO_OP_ANGLE)
                 | (js.gripper_open[keyframes] != js.gripper_open[now]))
@@ -183,18 +176,30 @@ def yaw_about_centre(xyz, angle: float, centre=None) -> np.ndarray:
     return ((np.asarray(xyz) - centre) @ rotation.T + centre).astype(np.float32)
 
 
-def augment(xyz, target_xyz, target_quat, rng: np.random.Generator):
-    """Scene and target moved together: a world-frame yaw about the workspace centre (+-45 deg in
-    5 deg steps), then a shift of up to +-12.5 cm per axis; redrawn until the target stays in the
-    workspace (unchanged after MAX_REDRAWS). Returns (xyz (N, 3), target_xyz (3,), target_quat (4,))."""
+class SceneMove(NamedTuple):
+    """What augmentation does to a sample: a world-frame yaw about the workspace centre, then a shift."""
+    angle: float = 0.0              # rad
+    shift: tuple = (0.0, 0.0, 0.0)  # m
+
+    def points(self, xyz) -> np.ndarray:
+        """(N, 3) float32 points moved."""
+        return yaw_about_centre(xyz, self.angle) + np.asarray(self.shift, dtype=np.float32)
+
+    def orientations(self, quat) -> np.ndarray:
+        """(..., 4) xyzw orientations turned with the scene."""
+        return rotations.yaw_quat(quat, self.angle)
+
+
+def draw_move(target_xyz, rng: np.random.Generator) -> SceneMove:
+    """A yaw of +-45 deg in 5 deg steps and a shift of up to +-12.5 cm per axis, redrawn until
+    ``target_xyz`` (3,) stays in the workspace (no move after MAX_REDRAWS)."""
     for _ in range(MAX_REDRAWS):
         angle = math.radians(YAW_STEP * rng.integers(-YAW_RANGE // YAW_STEP, YAW_RANGE // YAW_STEP + 1))
-        shift = rng.uniform(-TRANSLATION_RANGE, TRANSLATION_RANGE, 3)
-        moved = yaw_about_centre(np.asarray(target_xyz)[None], angle)[0] + shift
+        move = SceneMove(angle, tuple(rng.uniform(-TRANSLATION_RANGE, TRANSLATION_RANGE, 3)))
+        moved = move.points(np.asarray(target_xyz)[None])[0]
         if np.all(moved > WORKSPACE[0]) and np.all(moved < WORKSPACE[1]):
-            return (yaw_about_centre(xyz, angle) + shift.astype(np.float32), moved,
-                    rotations.yaw_quat(target_quat, angle))
-    return np.asarray(xyz), np.asarray(target_xyz), np.asarray(target_quat)
+            return move
+    return SceneMove()
 
 
 @dataclasses.dataclass
@@ -212,16 +217,19 @@ class Item:
 
 
 class KeyframeDataset:
-    """Samples of many episodes (dicts as episode_samples returns them)."""
+    """Samples of many episodes (dicts as episode_samples returns them); each Item's proprio is the
+    ``proprio`` kind of model.PROPRIO_DIMS."""
 
-    def __init__(self, episodes: list[dict]):
+    def __init__(self, episodes: list[dict], proprio: str = 'joints'):
         self.episodes = episodes
+        self.proprio = proprio
+        self._hand_poses = {}                  # episode -> hand_pose of its observations, on first use
         self.index = np.array([(e, s) for e, episode in enumerate(episodes)
                                for s in range(len(episode['target_open']))], dtype=np.int64).reshape(-1, 2)
         self.tasks = np.array([str(episodes[e]['task']) for e, _ in self.index])
 
     @classmethod
-    def from_directory(cls, data_dir, cache_dir=None, progress: bool = True) -> KeyframeDataset:
+    def from_directory(cls, data_dir, cache_dir=None, progress: bool = True, proprio: str = 'joints') -> KeyframeDataset:
         """Every successful episode under ``data_dir``, decoded once and cached (default: <data_dir>_cache)."""
         from tqdm import tqdm
         bags = list_episodes(data_dir)
@@ -229,7 +237,7 @@ class KeyframeDataset:
             raise FileNotFoundError(f'no successful episodes in {data_dir}')
         cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(data_dir)
         return cls([load_samples(bag, cache_dir)
-                    for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)])
+                    for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)], proprio)
 
     def training_seeds(self) -> dict[str, list[int]]:
         """task -> the sorted seeds of its episodes: what evaluation must stay away from."""
@@ -255,11 +263,22 @@ class KeyframeDataset:
         start, stop = episode['starts'][s], episode['starts'][s + 1]
         xyz, rgb = episode['xyz'][start:stop], episode['rgb'][start:stop]
         target_xyz, target_quat = episode['target_xyz'][s], episode['target_quat'][s]
+        move = draw_move(target_xyz, rng) if augmented else SceneMove()
         if augmented:
-            xyz, target_xyz, target_quat = augment(xyz, target_xyz, target_quat, rng)
+            xyz, target_xyz, target_quat = (move.points(xyz), move.points(target_xyz[None])[0],
+                                            move.orientations(target_quat))
         task = str(episode['task'])
         phrasings = language.heldout_phrasings(task) if heldout else language.training_phrasings(task)
-        return Item(xyz, rgb, proprio_vector(episode['joint_positions'][s], episode['gripper_open'][s]),
+        return Item(xyz, rgb, self._proprio(e, s, move),
                     language.instruction(task, int(episode['variation']), phrasings, rng),
                     np.asarray(target_xyz, dtype=np.float32), np.asarray(target_quat, dtype=np.float64),
                     bool(episode['target_open'][s]), task)
+
+    def _proprio(self, e: int, s: int, move: SceneMove) -> np.ndarray:
+        episode = self.episodes[e]
+        if self.proprio == 'joints':
+            return proprio_vector(episode['joint_positions'][s], episode['gripper_open'][s])
+        if e not in self._hand_poses:
+            self._hand_poses[e] = hand_pose(episode['joint_positions'])
+        hand_xyz, hand_quat = (pose[s] for pose in self._hand_poses[e])
+        return hand_vector(move.points(hand_xyz[None])[0], move.orientations(hand_quat), episode['gripper_open'][s])

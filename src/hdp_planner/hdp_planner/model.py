@@ -19,11 +19,16 @@ import torch.nn.functional as F
 from torch import nn
 
 from hdp_motion import panda
+from hdp_msgs_py.workspace import WORKSPACE
 
 from . import rotations, voxels
 from .language import MAX_WORDS, InstructionEncoder, WordEncoder
 
-PROPRIO_DIM = 8        # gripper open, 7 joint positions
+# The arm state the network is conditioned on. 'joints': gripper open, 7 joint positions. 'hand':
+# gripper open, the hand's position and orientation in the world frame, which the training
+# augmentation moves with the scene (joint positions cannot follow a moved scene, so under
+# augmentation they contradict where the cloud shows the hand).
+PROPRIO_DIMS = {'joints': 8, 'hand': 10}
 # 'words': WordEncoder, learned over the task vocabulary. 'minilm': frozen all-MiniLM-L6-v2 and a
 # learned projection (sentence_encoder; imported only when chosen, it loads transformers).
 LANGUAGE_ENCODERS = ('words', 'minilm')
@@ -37,6 +42,24 @@ def proprio_vector(joint_positions, gripper_open) -> np.ndarray:
     return np.concatenate([gripper, scaled], -1).astype(np.float32)
 
 
+def hand_pose(joint_positions) -> tuple[np.ndarray, np.ndarray]:
+    """xyz (N, 3) m and quaternions (N, 4) xyzw of panda_grasptarget for (N, 7) joint positions."""
+    from hdp_motion import kinematics           # pytorch-kinematics: loaded only by what needs the hand
+    pose = kinematics.fk_pose(torch.as_tensor(np.asarray(joint_positions, dtype=np.float64))).numpy()
+    return pose[:, :3], pose[:, 3:]
+
+
+def hand_vector(hand_xyz, hand_quat, gripper_open) -> np.ndarray:
+    """(..., 10) float32: gripper open as +-1, the hand's position scaled to [-1, 1] over the
+    workspace, the first two columns of its rotation matrix (continuous, unlike a quaternion)."""
+    lower, upper = WORKSPACE
+    position = 2 * (np.asarray(hand_xyz, dtype=np.float64) - lower) / (upper - lower) - 1
+    axes = rotations.quat_to_matrix(hand_quat)[..., :, :2]
+    gripper = np.where(np.asarray(gripper_open, dtype=bool), 1.0, -1.0)[..., None]
+    return np.concatenate([gripper, position, axes.swapaxes(-1, -2).reshape(*position.shape[:-1], 6)],
+                          -1).astype(np.float32)
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
     """Everything needed to rebuild the network; stored in every checkpoint as a plain dict."""
@@ -48,10 +71,13 @@ class ModelConfig:
     fine_half_extent: float = voxels.FINE_HALF_EXTENT
     head_hidden: int = 256
     language_encoder: str = 'words'      # checkpoints from before the choice existed are 'words'
+    proprio: str = 'joints'              # and 'joints'
 
     def __post_init__(self):
         if self.language_encoder not in LANGUAGE_ENCODERS:
             raise ValueError(f'language_encoder {self.language_encoder!r} is not one of {LANGUAGE_ENCODERS}')
+        if self.proprio not in PROPRIO_DIMS:
+            raise ValueError(f'proprio {self.proprio!r} is not one of {tuple(PROPRIO_DIMS)}')
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
@@ -136,7 +162,7 @@ class NextBestPoseNet(nn.Module):
         self.config = config
         c0, _, c2 = config.channels
         self.language = instruction_encoder(config)
-        self.proprio = nn.Sequential(nn.Linear(PROPRIO_DIM, 64), nn.SiLU(), nn.Linear(64, 64))
+        self.proprio = nn.Sequential(nn.Linear(PROPRIO_DIMS[config.proprio], 64), nn.SiLU(), nn.Linear(64, 64))
         condition_dim = config.language_dim + 64
         self.coarse = UNet3D(voxels.CHANNELS, config.channels, condition_dim)
         self.coarse_heatmap = nn.Conv3d(c0, 1, 1)
@@ -148,7 +174,7 @@ class NextBestPoseNet(nn.Module):
         self.to(memory_format=torch.channels_last_3d)     # ~20% faster 3D convolutions on CPU
 
     def condition(self, instructions, proprio: torch.Tensor) -> torch.Tensor:
-        """(B, language_dim + 64) from B instructions and (B, 8) proprio vectors."""
+        """(B, language_dim + 64) from B instructions and (B, PROPRIO_DIMS[config.proprio]) proprio vectors."""
         _, pooled = self.language(instructions)
         return torch.cat([pooled, self.proprio(proprio)], 1)
 

@@ -165,11 +165,12 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
         raise ValueError(f'batch {batch} does not split over {world} processes')
     if not lead:
         distributed.barrier(world)    # the lead decodes and caches the episodes; the others then read its cache
-    dataset = KeyframeDataset.from_directory(data, cache, progress)
-    val = KeyframeDataset.from_directory(val_data, progress=progress) if val_data and lead else None
+    model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()), language_encoder=language_encoder)
+    dataset = KeyframeDataset.from_directory(data, cache, progress, model_config.proprio)
+    val = (KeyframeDataset.from_directory(val_data, progress=progress, proprio=model_config.proprio)
+           if val_data and lead else None)
     if lead:
         distributed.barrier(world)
-    model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()), language_encoder=language_encoder)
     train_config = {'data': str(Path(data).resolve()), 'steps': steps, 'batch': batch, 'lr': lr, 'seed': seed}
     torch.manual_seed(seed)           # the initial weights: from the seed, the same on every rank
     model = NextBestPoseNet(model_config).to(device)
