@@ -189,6 +189,7 @@ def train(data_dir, out, model_config: RKDConfig, train_config: TrainConfig, dev
                 if lead:
                     _save(out, resume_path, model, ema, optimizer, schedule, step, elapsed, model_config,
                           train_config, segs, data_dir, losses[-50:], init_info, digests)
+    del net                           # before the process group: distributed.stop
     distributed.stop(world)
     return out
 

@@ -259,6 +259,7 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
                     checkpoint.save(out, model, optimizer, step,
                                     {**train_config, 'processes': world, 'weights_sha256': digests[0]},
                                     metrics, training_seeds)
+    del net                           # before the process group: distributed.stop
     distributed.stop(world)
     return metrics
 
