@@ -2,6 +2,7 @@
 
 import json
 import os
+import socket
 import subprocess
 import sys
 
@@ -498,10 +499,45 @@ def test_train_cli_runs_and_resumes(episodes, tmp_path):
     assert 'Traceback' not in missing.stderr
 
 
-def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path):
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(('127.0.0.1', 0))
+        return probe.getsockname()[1]
+
+
+def _torchrun(launch: str, arguments: list, env: dict, port: int) -> list:
+    """Run ``python -m hdp_msgs_py.cli.main ARGUMENTS`` as two torchrun ranks: both in one launcher
+    ('standalone'), or one per launcher, as two machines join (torchrun's c10d rendezvous; here
+    both on loopback, the first launcher hosting the store). Returns the launchers' results."""
+    run = [sys.executable, '-m', 'torch.distributed.run']
+    command = ['-m', 'hdp_msgs_py.cli.main', *arguments]
+    if launch == 'standalone':
+        return [subprocess.run([*run, '--standalone', '--nproc-per-node', '2', *command],
+                               text=True, capture_output=True, timeout=120, env=env)]
+    # is_host named: both launchers on one host would otherwise race to host the store.
+    nodes = [[*run, '--nnodes', '2', '--nproc-per-node', '1', '--rdzv-backend', 'c10d',
+              '--rdzv-endpoint', f'127.0.0.1:{port}', '--rdzv-id', f'hdp-test-{port}',
+              '--rdzv-conf', f'is_host={int(host)}', *command] for host in (True, False)]
+    launchers = [subprocess.Popen(node, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+                 for node in nodes]
+    results = []
+    for node, launcher in zip(nodes, launchers):
+        try:
+            out, err = launcher.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            launcher.kill()
+            out, err = launcher.communicate()
+            err += '\n(killed after 120 s)'
+        results.append(subprocess.CompletedProcess(node, launcher.returncode, out, err))
+    return results
+
+
+@pytest.mark.parametrize('launch', ['standalone', 'two_nodes'])
+def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path, launch):
     """DDP over gloo: both ranks end with identical weights (the trainer compares their
     digests at every save and refuses to go on otherwise), and two processes of 2 samples
-    match one process of the combined 4 to float rounding (gradients averaged in another order)."""
+    match one process of the combined 4 to float rounding (gradients averaged in another order),
+    whether torchrun starts both or two launchers meet by rendezvous as two machines would."""
     config = tmp_path / 'small.yaml'
     config.write_text('model: {unet_dim: 8, point_features: 16, point_width: 8, n_points: 64, diffusion_steps: 10}\n'
                       'train: {batch_size: 4, save_every: 1, warmup_steps: 1, goal_augment: 0.05}\n')
@@ -511,10 +547,8 @@ def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path
                          text=True, capture_output=True, timeout=300)
     assert one.returncode == 0, one.stderr
     env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
-    two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
-                          '-m', 'hdp_msgs_py.cli.main', *options, '--out', str(tmp_path / 'two.pt')],
-                         text=True, capture_output=True, timeout=300, env=env)
-    assert two.returncode == 0, two.stderr[-3000:]
+    for launcher in _torchrun(launch, [*options, '--out', str(tmp_path / 'two.pt')], env, free_port()):
+        assert launcher.returncode == 0, launcher.stderr[-3000:]
     single, split = checkpoint.read(tmp_path / 'one.pt'), checkpoint.read(tmp_path / 'two.pt')
     assert (single['training']['processes'], split['training']['processes']) == (1, 2)
     assert single['model'].keys() == split['model'].keys()
