@@ -513,3 +513,21 @@ def test_keyframe_metrics_split_each_task_by_where_in_the_episode_a_sample_is():
     assert (first['translation_cm'], first['samples']) == (2.0, 2)
     assert by_keyframe['open_grill keyframe 2']['translation_cm'] == 7.0
     assert task_metrics(dataset, errors)['open_grill']['translation_cm'] == pytest.approx(19 / 6, abs=1e-4)
+
+
+def test_a_stop_the_gripper_change_follows_at_the_same_pose_is_one_goal():
+    from hdp_planner.dataset import merge_stops_into_gripper_changes
+    down = [0.0, 1.0, 0.0, 0.0]                                   # xyzw, the hand pointing down
+    turned = rotations.yaw_quat(np.array(down), math.radians(30))
+    xyz = [[0.5, 0.0, 1.0],       # pre-grasp, open
+           [0.5, 0.0, 0.9],       # the arm's stop at the grasp, still open
+           [0.5, 0.0, 0.903],     # the gripper closing there, 3 mm and two frames later
+           [0.5, 0.0, 1.1],       # lift, closed
+           [0.6, 0.0, 1.1],       # a stop with the gripper opening 10 cm on: two goals
+           [0.6, 0.0, 1.1],       # a stop turned 30 deg before the gripper closes: two goals
+           [0.6, 0.0, 1.1]]
+    quat = [down] * 5 + [turned, down]
+    gripper_open = [True, True, False, False, True, True, False]
+    assert merge_stops_into_gripper_changes(xyz, quat, gripper_open).tolist() == [
+        True, False, True, True, True, True, True]
+    assert merge_stops_into_gripper_changes([[0.5, 0.0, 1.0]], [down], [True]).tolist() == [True]

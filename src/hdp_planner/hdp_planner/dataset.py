@@ -10,7 +10,8 @@ keyframe's rest, so it targets the one after. A keyframe that asks for
 nothing (the hand already there, within NO_OP_DISTANCE and NO_OP_ANGLE, and
 the gripper as it is) is skipped: those come from the expert stalling
 against a hinge, and a high level that learnt to predict them would stall
-the hierarchy in place.
+the hierarchy in place. An arm's stop that a gripper change follows at the
+same pose is one goal, the change's (``merge_stops_into_gripper_changes``).
 
 Decoding bags is slow, so each episode's samples (workspace points and
 colours, proprio, targets) are cached as one npz under the cache directory,
@@ -35,7 +36,7 @@ from . import language, rotations
 from .model import hand_pose, hand_vector, proprio_vector
 from .voxels import scene_points
 
-CACHE_VERSION = 3           # 3: forward kinematics by hdp_motion.kinematics (was PyBullet)
+CACHE_VERSION = 4           # 4: stops merged into the gripper change that follows (3: FK by hdp_motion)
 KEYFRAME_SNAP = 0.02          # s
 NO_OP_DISTANCE = 0.01         # m
 NO_OP_ANGLE = math.radians(5)
@@ -99,6 +100,18 @@ def camera_geometry(episode) -> tuple[dict, dict]:
     return intrinsics, to_world
 
 
+def merge_stops_into_gripper_changes(xyz, quat, gripper_open) -> np.ndarray:
+    """(K,) bool: which of K consecutive keyframes (hand xyz (K, 3), quat (K, 4), gripper (K,))
+    are goals. A keyframe whose successor changes the gripper at the same pose (within NO_OP_DISTANCE
+    and NO_OP_ANGLE) is not: ARM's rule, at RLBench's 20 Hz, sees the arm's stop and the gripper's
+    change as one frame; at our 120 Hz they can land two frames apart, and the stop, still open,
+    would label a grasp 'open' in some episodes and 'closed' in others."""
+    xyz, quat, gripper_open = np.asarray(xyz), np.asarray(quat), np.asarray(gripper_open, dtype=bool)
+    same_pose = ((np.linalg.norm(np.diff(xyz, axis=0), axis=1) <= NO_OP_DISTANCE)
+                 & (rotations.angle_between(quat[1:], quat[:-1]) <= NO_OP_ANGLE))
+    return np.append(~(same_pose & (gripper_open[1:] != gripper_open[:-1])), True)
+
+
 def episode_samples(episode) -> dict:
     """One episode's samples as arrays, n of them:
     xyz (P, 3) float32 and rgb (P, 3) uint8 workspace points of all n observations, split at
@@ -108,6 +121,8 @@ def episode_samples(episode) -> dict:
     js = episode.joint_states
     keyframes = np.array(episode.keyframes(), dtype=np.int64)
     keyframe_xyz, keyframe_quat = hand_pose(js.position[keyframes])
+    goals = merge_stops_into_gripper_changes(keyframe_xyz, keyframe_quat, js.gripper_open[keyframes])
+    keyframes, keyframe_xyz, keyframe_quat = keyframes[goals], keyframe_xyz[goals], keyframe_quat[goals]
     intrinsics, to_world = camera_geometry(episode)
     clouds, state, target = [], [], []
     for t, frame in camera_frames(episode):
