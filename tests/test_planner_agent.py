@@ -30,7 +30,6 @@ torch.set_num_threads(1)
 
 TINY = dict(grid_size=8, channels=(4, 8, 8), language_dim=16, head_hidden=32)
 HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
-RELEASED_CONFIG = Path(__file__).resolve().parents[1] / 'src/hdp_planner/config/hdp_nbp_agent.yaml'
 
 
 @pytest.fixture(scope='module')
@@ -267,16 +266,18 @@ def test_train_continues_refuses_other_options_and_fine_tunes_with_the_union_of_
         train(data, tmp_path / 'x.pt', steps=1, **{**options, 'model_config': other}, init=out)
 
 
-def test_train_config_defaults_are_train_defaults_and_the_released_recipe_is_the_release():
+@pytest.mark.parametrize('name', ['hdp_nbp_agent', 'hdp_nbp_agent_11tasks'])
+def test_train_config_defaults_are_train_defaults_and_the_released_recipe_is_the_release(name):
     """TrainConfig (the --config "train:" section) defaults to what train() and the flags did before it;
-    config/hdp_nbp_agent.yaml rebuilds the released agent's network and hyper-parameters (the
-    vocabulary is today's task phrasings', which have grown since the release's six tasks)."""
+    config/NAME.yaml rebuilds models/NAME.pt's network and hyper-parameters (the vocabulary is
+    today's task phrasings', which have grown since the release's six tasks)."""
     from hdp_msgs_py.config import load_sections
     defaults = {name: p.default for name, p in inspect.signature(train).parameters.items()}
     assert {f.name: defaults[f.name] for f in dataclasses.fields(TrainConfig)} == vars(TrainConfig())
-    configs = load_sections(RELEASED_CONFIG, {'model': ModelConfig, 'train': TrainConfig},
+    root = Path(__file__).resolve().parents[1]
+    configs = load_sections(root / f'src/hdp_planner/config/{name}.yaml', {'model': ModelConfig, 'train': TrainConfig},
                             defaults={'model': {'vocabulary': tuple(language.task_vocabulary())}})
-    released = checkpoint.load(Path(__file__).resolve().parents[1] / 'models/hdp_nbp_agent.pt')['config']
+    released = checkpoint.load(root / f'models/{name}.pt')['config']
     stored = ModelConfig.from_dict(released['model'])
     assert configs['model'] == ModelConfig(**{**vars(stored), 'vocabulary': configs['model'].vocabulary})
     assert {k: released['train'][k] for k in ('steps', 'batch', 'lr', 'seed')} == {
