@@ -228,6 +228,36 @@ def test_argument_problems_are_found_before_anything_starts(tmp_path):
     assert exit_.value.code == 2
 
 
+def test_a_refused_episode_fails_and_the_next_seed_runs(monkeypatch):
+    """A low-confidence refusal on one seed is that episode's failure (as the harness counts it);
+    exit 2 only when the planner refused every episode."""
+    outcomes = {1000: 'succeeded', 1001: 'refused', 1002: 'failed'}
+
+    def fake_episode(session, seed, *args):
+        outcome = outcomes[seed]
+        return {'outcome': outcome, 'success': outcome == 'succeeded', 'reason': 'confidence 0.07',
+                'segments': [], 'success_s': 3.0}, None
+    monkeypatch.setattr(cli, 'wait_for_graph', lambda *args: None)
+    monkeypatch.setattr(cli, 'run_episode', fake_episode)
+
+    class Session:
+        procs = {}
+
+        class node:
+            episode, reset = None, type('Publisher', (), {'publish': lambda self, msg: None})()
+
+    def run(seed, episodes):
+        records, said = [], []
+        args = _parse('--task', 'open_drawer', '--seed', str(seed), '--episodes', str(episodes))
+        code = cli._episodes(Session(), args, records, [], time.monotonic(), said.append)
+        return code, [r['outcome'] for r in records], said
+    code, ran, said = run(1000, 3)
+    assert code == 1 and ran == ['succeeded', 'refused', 'failed']
+    assert any('seed 1001: planner_node refused' in line for line in said)
+    assert run(1001, 1)[:2] == (2, ['refused'])
+    assert run(1000, 1)[0] == 0 and run(1002, 1)[0] == 1
+
+
 def test_checkpoint_flags_reach_the_nodes_that_load_them(tmp_path):
     agent, low_level = tmp_path / 'agent.pt', tmp_path / 'rkd.pt'
     plain = cli.parameter_overrides(_parse('--task', 'open_box', '--seed', '1003'))

@@ -50,8 +50,10 @@ def configure(parser) -> None:
     are connected, sends the episode's instruction and prints one line per segment. Writes to
     OUT: <task>_seed<S>.gif (front camera), <task>_seed<S>_trajectory.png (joints over time,
     end-effector path and NBPs), summary.json (segments, stage times, CPU per node) and the
-    nodes' output in logs/. Exit 0 when every episode succeeded, 1 on a failure or timeout,
-    2 on bad arguments or a refused instruction, 130 on Ctrl-C; the nodes are stopped on every exit.
+    nodes' output in logs/. A refused instruction (the planner's vocabulary, or a first NBP below
+    min_confidence) is that episode's failure, as the harness counts it, and the next episode
+    runs. Exit 0 when every episode succeeded, 1 on a failure or timeout, 2 on bad arguments or
+    when every episode was refused, 130 on Ctrl-C; the nodes are stopped on every exit.
     """
     parser.add_argument('--task', required=True, metavar='TASK',
                         help='e.g. reach_target or open_drawer (an unknown name lists the eleven tasks)')
@@ -171,7 +173,7 @@ def run(args) -> int:
 
 
 def _run(session: Session, args, records, logs_by_episode, started, say) -> int:
-    """Wait for the graph, run the episodes; the exit code (2: the planner refused the instruction)."""
+    """Wait for the graph, run the episodes; the exit code (exit_code, 1 on a timeout)."""
     node = session.node
     recorder = BagRecorder(node, args.out / 'bag') if args.record else None     # before latched topics come
     try:
@@ -210,15 +212,22 @@ def _episodes(session: Session, args, records, logs_by_episode, started, say) ->
         record, log = run_episode(session, seed, args.instruction, args.timeout, cpu_sample, say, args.phrasing)
         records.append(record)
         logs_by_episode.append(log)
-        if record['outcome'] == 'refused':
-            say(f"planner_node refused the instruction: {record['reason']}")
-            return 2
         if record['outcome'] == 'timeout':        # the planner may still be at it: a reset would mislead it
             say(f"seed {seed}: TIMEOUT ({record['reason']}); no further episodes")
             return 1
+        if record['outcome'] == 'refused':     # one failed episode, as the harness counts it
+            say(f"seed {seed}: planner_node refused the instruction: {record['reason']}")
+            continue
         verdict = 'succeeded' if record['success'] else f"FAILED ({record['outcome']}: {record['reason']})"
         when = f" in {record['success_s']:.1f} s" if record['success'] else ''
         say(f"seed {seed}: {verdict}{when}, {len(record['segments'])} segments")
+    return exit_code(records)
+
+
+def exit_code(records: list) -> int:
+    """0: every episode succeeded; 2: the planner refused every one; 1: otherwise."""
+    if all(r['outcome'] == 'refused' for r in records):
+        return 2
     return 0 if all(r['success'] for r in records) else 1
 
 
