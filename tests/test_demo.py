@@ -253,7 +253,7 @@ def test_a_refused_episode_fails_and_the_next_seed_runs(monkeypatch):
         return code, [r['outcome'] for r in records], said
     code, ran, said = run(1000, 3)
     assert code == 1 and ran == ['succeeded', 'refused', 'failed']
-    assert any('seed 1001: planner_node refused' in line for line in said)
+    assert any('seed 1001: REFUSED by planner_node (confidence 0.07)' in line for line in said)
     assert run(1001, 1)[:2] == (2, ['refused'])
     assert run(1000, 1)[0] == 0 and run(1002, 1)[0] == 1
 

@@ -216,7 +216,7 @@ def _episodes(session: Session, args, records, logs_by_episode, started, say) ->
             say(f"seed {seed}: TIMEOUT ({record['reason']}); no further episodes")
             return 1
         if record['outcome'] == 'refused':     # one failed episode, as the harness counts it
-            say(f"seed {seed}: planner_node refused the instruction: {record['reason']}")
+            say(f"seed {seed}: REFUSED by planner_node ({record['reason']})")
             continue
         verdict = 'succeeded' if record['success'] else f"FAILED ({record['outcome']}: {record['reason']})"
         when = f" in {record['success_s']:.1f} s" if record['success'] else ''
