@@ -70,6 +70,27 @@ def test_features_are_zero_at_padding_and_pooled_is_the_projected_sentence():
     assert torch.allclose(pooled[0], encoder.projection(sentence), atol=1e-6)
 
 
+def test_language_noise_moves_training_embeddings_by_its_norm_and_never_at_inference():
+    dim = sentence_encoder.EMBEDDING_DIM
+    encoder = SentenceEncoder(dim, noise=1.0)
+    with torch.no_grad():                                # pooled is the (noisy) sentence itself
+        encoder.projection.weight.copy_(torch.eye(dim))
+        encoder.projection.bias.zero_()
+    texts = ['open box'] * 256
+    clean = encoder.frozen(texts[:1])[0][1]
+    assert torch.allclose(encoder.eval()(texts)[1], clean, atol=1e-6)
+    torch.manual_seed(0)
+    noisy = encoder.train()(texts)[1]
+    assert torch.allclose(noisy.norm(dim=1), torch.ones(256), atol=1e-5)     # back on the unit sphere
+    # A noise vector of norm 1 at a right angle to the unit embedding, normalised: cosine 1 / sqrt(2).
+    assert abs((noisy @ clean).mean().item() - 2 ** -0.5) < 0.03
+    assert len({tuple(row.tolist()) for row in noisy}) == 256          # drawn per row
+    with pytest.raises(ValueError, match='language_noise'):
+        ModelConfig(('open', 'box'), language_noise=0.5)                # the word encoder has none
+    with pytest.raises(ValueError, match='language_noise'):
+        ModelConfig(('open', 'box'), language_encoder='minilm', language_noise=-1.0)
+
+
 def test_the_transformer_is_frozen_and_left_out_of_the_agents_weights(tmp_path):
     model = minilm_model().train()
     transformer = model.language.frozen.model
@@ -153,8 +174,8 @@ def test_checkpoints_from_before_the_choice_load_as_words(tmp_path):
         checkpoint.load_model(path)
 
 
-def test_the_released_agent_still_loads_with_the_word_encoder():
-    from hdp_planner.planner_logic import default_checkpoint
-    model, stored = checkpoint.load_model(default_checkpoint())
+def test_the_six_task_agent_still_loads_with_the_word_encoder():
+    from hdp_msgs_py.checkpoints import default_path
+    model, stored = checkpoint.load_model(default_path('hdp_nbp_agent.pt'))
     assert 'language_encoder' not in stored['config']['model']
     assert model.config.language_encoder == 'words' and isinstance(model.language, language.WordEncoder)

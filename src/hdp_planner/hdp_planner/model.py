@@ -72,10 +72,14 @@ class ModelConfig:
     head_hidden: int = 256
     language_encoder: str = 'words'      # checkpoints from before the choice existed are 'words'
     proprio: str = 'joints'              # and 'joints'
+    language_noise: float = 0.0          # 'minilm' in training: sentence_encoder.SentenceEncoder
 
     def __post_init__(self):
         if self.language_encoder not in LANGUAGE_ENCODERS:
             raise ValueError(f'language_encoder {self.language_encoder!r} is not one of {LANGUAGE_ENCODERS}')
+        if self.language_noise < 0 or (self.language_noise and self.language_encoder != 'minilm'):
+            raise ValueError(f"language_noise must be >= 0, and 0 unless language_encoder is 'minilm', "
+                             f'got {self.language_noise!r}')
         if self.proprio not in PROPRIO_DIMS:
             raise ValueError(f'proprio {self.proprio!r} is not one of {tuple(PROPRIO_DIMS)}')
 
@@ -95,7 +99,7 @@ def instruction_encoder(config: ModelConfig) -> InstructionEncoder:
     """The language encoder ``config`` names, its output dim ``config.language_dim``."""
     if config.language_encoder == 'minilm':
         from .sentence_encoder import SentenceEncoder
-        return SentenceEncoder(config.language_dim)
+        return SentenceEncoder(config.language_dim, config.language_noise)
     return WordEncoder(config.vocabulary, config.language_dim, config.max_words)
 
 

@@ -99,11 +99,18 @@ class SentenceEncoder(InstructionEncoder):
 
     Token features are the projected token embeddings ([CLS] and [SEP] included, zero at
     padding); pooled is the projected normalised sentence embedding.
+
+    In training, ``noise`` > 0 moves each sentence embedding by an isotropic Gaussian of that
+    expected norm (then back onto the unit sphere): a training set has two or three phrasings a
+    task, and a projection that fits exactly those reads any direction in which they happen to
+    differ, including ones a new phrasing moves along. Noise spread over all 384 directions
+    barely blurs the few that tell tasks and variations apart, but drowns the rest, so the
+    projection learns to read only the former.
     """
 
-    def __init__(self, dim: int):
+    def __init__(self, dim: int, noise: float = 0.0):
         super().__init__()
-        self.dim = dim
+        self.dim, self.noise = dim, noise
         self.projection = nn.Linear(EMBEDDING_DIM, dim)
         self.frozen = frozen_minilm()
 
@@ -114,5 +121,8 @@ class SentenceEncoder(InstructionEncoder):
         valid = torch.arange(tokens.shape[1])[None] < lengths[:, None]                      # (B, L)
         device = self.projection.weight.device
         features = self.projection(tokens.to(device)) * valid[..., None].to(device)
-        pooled = self.projection(torch.stack([s for _, s in embedded]).to(device))
-        return features, pooled
+        sentences = torch.stack([s for _, s in embedded])                                   # (B, 384)
+        if self.training and self.noise > 0:
+            noise = torch.randn(sentences.shape) * (self.noise / EMBEDDING_DIM ** 0.5)
+            sentences = nn.functional.normalize(sentences + noise, dim=1)
+        return features, self.projection(sentences.to(device))
