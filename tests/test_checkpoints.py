@@ -129,9 +129,9 @@ def test_weights_are_checked_against_the_model(tmp_path):
 def test_hdp_models_dir_is_honoured_by_both_packages(tmp_path, monkeypatch):
     monkeypatch.delenv('HDP_MODELS_DIR', raising=False)
     assert checkpoints.models_dir() == MODELS
-    assert (rkd_default(), agent_default()) == (MODELS / 'rk_diffuser.pt', MODELS / 'hdp_nbp_agent.pt')
+    assert (rkd_default(), agent_default()) == (MODELS / 'rk_diffuser_11tasks.pt', MODELS / 'hdp_nbp_agent_11tasks.pt')
     monkeypatch.setenv('HDP_MODELS_DIR', str(tmp_path))
-    assert (rkd_default(), agent_default()) == (tmp_path / 'rk_diffuser.pt', tmp_path / 'hdp_nbp_agent.pt')
+    assert (rkd_default(), agent_default()) == (tmp_path / 'rk_diffuser_11tasks.pt', tmp_path / 'hdp_nbp_agent_11tasks.pt')
     assert checkpoints.default_path('x.pt') == tmp_path / 'x.pt'
 
 

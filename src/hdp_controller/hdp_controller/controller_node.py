@@ -33,7 +33,7 @@ INTERFACES = ('topic', 'action')
 class ControllerNode(ros.Node):
     PARAMETERS = {
         'method': ('rkd', f'low-level method: {" | ".join(METHODS)}'),
-        'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser.pt ($HDP_MODELS_DIR)"),
+        'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser_11tasks.pt ($HDP_MODELS_DIR)"),
         'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
         'device': ('cpu', 'where the diffusers sample: cpu | cuda | cuda:N | auto (refinement stays on the CPU)'),
         'segment_timeout_s': (10.0, 's after the trajectory ends for the arm to come to rest'),

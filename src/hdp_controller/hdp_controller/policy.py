@@ -26,7 +26,7 @@ from .rk_diffuser import RKDiffuser, as_batch
 
 METHODS = ('rkd', 'planner', 'planner_rrt', 'pose_ik', 'joint')
 LEARNED = ('rkd', 'pose_ik', 'joint')        # they read the checkpoint and the camera's points
-DEFAULT_CHECKPOINT_NAME = 'rk_diffuser.pt'
+DEFAULT_CHECKPOINT_NAME = 'rk_diffuser_11tasks.pt'      # the eleven-task RK-Diffuser
 # The fast sampler: DDIM over FAST_STEPS of the 100 training steps, without
 # classifier-free guidance (half the network evaluations). The refinement is the
 # same for both samplers: success hangs on it, not on the sampler (validation
@@ -38,7 +38,7 @@ REFINE_STEPS = 50
 
 
 def default_checkpoint() -> Path:
-    """$HDP_MODELS_DIR/rk_diffuser.pt, else the repository's models/rk_diffuser.pt."""
+    """$HDP_MODELS_DIR/rk_diffuser_11tasks.pt, else the repository's models/rk_diffuser_11tasks.pt."""
     return checkpoints.default_path(DEFAULT_CHECKPOINT_NAME)
 
 

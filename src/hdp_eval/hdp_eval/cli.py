@@ -142,8 +142,8 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--plan-attempts', type=int, default=None, metavar='N',
                         help="draws of the low level before a plan ending beyond the reach tolerance is refused "
                              "(default: controller_node's plan_attempts)")
-    parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent.pt ($HDP_MODELS_DIR)')
-    parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser.pt')
+    parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent_11tasks.pt ($HDP_MODELS_DIR)')
+    parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser_11tasks.pt')
     parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
                         help='RK-Diffuser sampler (default ddim)')
     parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')

@@ -30,7 +30,7 @@ from .language import words
 MAX_INSTRUCTION_CHARS = 256
 # Words every phrasing shares; an instruction made of these alone names no task.
 FILLER_WORDS = frozenset({'a', 'an', 'and', 'it', 'of', 'off', 'the', 'to', 'up', 'with'})
-DEFAULT_CHECKPOINT_NAME = 'hdp_nbp_agent.pt'
+DEFAULT_CHECKPOINT_NAME = 'hdp_nbp_agent_11tasks.pt'      # the eleven-task agent
 FRAME_LEAD_S = 1.0       # how far a frame's stamp may run ahead of the latest joint state
 # The agent's confidence in its first NBP below which an instruction is refused. Chosen on the
 # validation seeds 900-909 (`hdp eval hierarchy --agents hdp --tasks first_six --episodes 10 --seed-start 900
@@ -41,7 +41,7 @@ DEFAULT_MIN_CONFIDENCE = 0.08
 
 
 def default_checkpoint() -> Path:
-    """$HDP_MODELS_DIR/hdp_nbp_agent.pt, else the repository's models/hdp_nbp_agent.pt."""
+    """$HDP_MODELS_DIR/hdp_nbp_agent_11tasks.pt, else the repository's models/hdp_nbp_agent_11tasks.pt."""
     return checkpoints.default_path(DEFAULT_CHECKPOINT_NAME)
 
 

@@ -29,7 +29,7 @@ _WATCH_S = 0.5
 
 class PlannerNode(ros.Node):
     PARAMETERS = {
-        'checkpoint': ('', "next-best-pose agent; '' = models/hdp_nbp_agent.pt ($HDP_MODELS_DIR)"),
+        'checkpoint': ('', "next-best-pose agent; '' = models/hdp_nbp_agent_11tasks.pt ($HDP_MODELS_DIR)"),
         'max_segments': (8, 'segments per instruction before it has failed'),
         'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
         'result_timeout_s': (60.0, 's to wait for a segment result before the next segment'),

@@ -76,10 +76,10 @@ def configure(parser) -> None:
     parser.add_argument('--params-file', type=Path, default=None,
                         help=f'node parameters (default: {default_params_file()})')
     parser.add_argument('--agent-checkpoint', type=Path, default=None,
-                        help="planner_node's agent (default: the parameter file's, models/hdp_nbp_agent.pt); "
+                        help="planner_node's agent (default: the parameter file's, models/hdp_nbp_agent_11tasks.pt); "
                              'the same flag as hdp eval hierarchy, so both run the same models')
     parser.add_argument('--low-level-checkpoint', type=Path, default=None,
-                        help="controller_node's RK-Diffuser (default: the parameter file's, models/rk_diffuser.pt)")
+                        help="controller_node's RK-Diffuser (default: the parameter file's, models/rk_diffuser_11tasks.pt)")
     parser.add_argument('--json', action='store_true',
                         help='print summary.json on stdout (progress goes to stderr)')
     parser.add_argument('--record', action='store_true',
