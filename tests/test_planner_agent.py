@@ -292,7 +292,8 @@ def test_train_cli_config_unknown_keys_and_bad_values_fail_with_one_line(tmp_pat
     for text, expected in [
             ('model: {grid_size: 8, channel: [4, 8, 8]}\n',
              f'hdp train high-level: bad configuration: {config}: model: unknown key channel; known: vocabulary, '
-             'grid_size, channels, language_dim, max_words, fine_half_extent, head_hidden, language_encoder, proprio'),
+             'grid_size, channels, language_dim, max_words, fine_half_extent, head_hidden, language_encoder, proprio, '
+             'language_noise'),
             ('train: {steps: 2, batch_size: 4}\n',
              f'hdp train high-level: bad configuration: {config}: train: unknown key batch_size; known: steps, '
              'batch, lr, seed, val_every, save_every'),
