@@ -73,6 +73,25 @@ def test_a_refused_segment_has_controller_time_and_no_execution():
     assert 'controller 0.50 s, execution -' in line
 
 
+
+def test_a_stalled_episode_names_the_node_it_waits_on():
+    log = episode_log.EpisodeLog(start=10.0)
+    assert episode_log.stall_report(log, 40.0)[:2] == ['no NBP from planner_node since the instruction',
+                                                        'no /joint_states since the instruction']
+    log.status += [(0.1, 'instruction accepted'), (1.5, 'segment 1 sent')]
+    log.joints.append((2.0, 5.0, np.zeros(7)))
+    segment = log.nbp(11.5, key=1, xyz=(0.5, 0.0, 1.0))
+    report = episode_log.stall_report(log, 40.0)
+    assert report == ['segment 1: NBP at 1.5 s, no trajectory from controller_node since',
+                      'last /joint_states at 2.0 s of 30.0 s',
+                      '/hdp/status    0.1 s: instruction accepted', '/hdp/status    1.5 s: segment 1 sent']
+    log.trajectory(12.0, points=10, duration_s=1.0)
+    assert episode_log.stall_report(log, 40.0)[0] == 'segment 1: trajectory at 2.0 s, no segment result since'
+    log.result(14.0, key=segment.key, outcome='done')
+    assert episode_log.stall_report(log, 40.0, status_lines=1)[::2] == [
+        'segment 1 ended (done) at 4.0 s; no NBP from planner_node since', '/hdp/status    1.5 s: segment 1 sent']
+
+
 # --- CPU --------------------------------------------------------------------------------------------
 
 def _stat(pid, ppid, utime, stime, cutime=0, cstime=0, comm='python3'):
@@ -270,6 +289,44 @@ def test_checkpoint_flags_reach_the_nodes_that_load_them(tmp_path):
     assert f'checkpoint:={low_level}' in ' '.join(commands['controller_node'])
 
 
+GRAPH_WAIT = r"""
+import time
+import rclpy
+from hdp_msgs_py import ros, topics
+from hdp_msgs_py.msg import String
+from hdp_bringup.demo.watcher import DemoNode
+
+def missing_after(seconds):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        for node in nodes:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    return demo.not_connected()
+
+ros.init()
+demo = DemoNode(lambda segment: None)
+# A recorder in the demo's process subscribes to the instruction too.
+demo.create_subscription(String, topics.INSTRUCTION, lambda msg: None, topics.COMMAND_QOS)
+nodes = [demo]
+print('before:', missing_after(3.0))
+planner = rclpy.create_node('planner_node')
+planner.create_subscription(String, topics.INSTRUCTION, lambda msg: None, topics.COMMAND_QOS)
+nodes.append(planner)
+print('after:', missing_after(3.0))
+"""
+
+
+def test_the_graph_is_not_up_until_planner_node_itself_hears_instructions(ros_domain):
+    """The demo's own subscriptions (a recorder's) on /hdp/instruction once counted as the
+    planner's, and the first instruction of a recorded demo could be lost."""
+    proc = subprocess.run([sys.executable, '-c', GRAPH_WAIT], env=_env(ros_domain), capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    before, after = (line for line in proc.stdout.splitlines() if line.startswith(('before:', 'after:')))
+    assert 'planner_node subscribed to /hdp/instruction' in before
+    assert 'planner_node subscribed to /hdp/instruction' not in after and 'sim_bridge_node' in after
+
+
 def _alive(pid: int) -> bool:
     try:
         state = Path(f'/proc/{pid}/stat').read_text()
@@ -300,12 +357,18 @@ def test_ctrl_c_stops_every_node_and_exits_130(tmp_path, ros_domain):
     assert len(pids) == 3 and not any(_alive(p) for p in pids), text
 
 
+def _node_log_tails(logs: Path, lines: int = 20) -> str:
+    """Each node's last lines, so a failure on a CI machine says what the nodes were doing."""
+    return ''.join(f'\n--- {log.name} (last {lines} lines)\n' + '\n'.join(log.read_text().splitlines()[-lines:])
+                   for log in sorted(logs.glob('*.log')))
+
+
 def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     out = tmp_path / 'demo'
     proc = subprocess.run(_hdp('demo', '--task', 'reach_target', '--seed', '1000', '--out', str(out), '--record'),
                           env=_env(ros_domain), capture_output=True, text=True, timeout=240)
     text = proc.stdout + proc.stderr
-    assert proc.returncode == 0, text
+    assert proc.returncode == 0, text + _node_log_tails(out / 'logs')
     assert f'ROS_DOMAIN_ID={ros_domain} (from the environment)' in text
     assert re.search(r'segment 1: NBP \(.+\) gripper \w+ -> done at .+ observe\+predict [\d.]+ s', text), text
     pids = _node_pids(text)

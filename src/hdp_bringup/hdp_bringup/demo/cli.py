@@ -214,6 +214,8 @@ def _episodes(session: Session, args, records, logs_by_episode, started, say) ->
         logs_by_episode.append(log)
         if record['outcome'] == 'timeout':        # the planner may still be at it: a reset would mislead it
             say(f"seed {seed}: TIMEOUT ({record['reason']}); no further episodes")
+            for line in record['stall']:
+                say(f'  {line}')
             return 1
         if record['outcome'] == 'refused':     # one failed episode, as the harness counts it
             say(f"seed {seed}: REFUSED by planner_node ({record['reason']})")

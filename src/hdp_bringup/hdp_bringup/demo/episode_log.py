@@ -125,3 +125,24 @@ def segment_line(segment: Segment) -> str:
             f'controller {seconds(segment.controller_s)}, execution {seconds(segment.execution_s)}{trajectory}')
 
 
+
+
+def stall_report(log: EpisodeLog, t: float, status_lines: int = 5) -> list[str]:
+    """Where an episode without an outcome stands at time ``t`` (the caller's clock): which node
+    it waits on, the robot's last joint state and planner_node's last status lines."""
+    now = log._t(t)
+    segment = log.open_segment
+    if not log.segments:
+        lines = ['no NBP from planner_node since the instruction']
+    elif segment is None:
+        last = log.segments[-1]
+        lines = [f'segment {last.index} ended ({last.result}) at {last.result_s:.1f} s; no NBP from planner_node since']
+    elif segment.trajectory_s is None:
+        lines = [f'segment {segment.index}: NBP at {segment.nbp_s:.1f} s, no trajectory from controller_node since']
+    else:
+        lines = [f'segment {segment.index}: trajectory at {segment.trajectory_s:.1f} s, '
+                 f'no segment result since']
+    lines.append(f'last /joint_states at {log.joints[-1][0]:.1f} s of {now:.1f} s' if log.joints
+                 else 'no /joint_states since the instruction')
+    lines += [f'/hdp/status {when:6.1f} s: {text}' for when, text in log.status[-status_lines:]]
+    return lines

@@ -24,7 +24,7 @@ from hdp_msgs_py.outcome import Outcome
 
 from ..launch_cli import NODES, running_nodes, start_node
 from .cpu import cpu_usage
-from .episode_log import EpisodeLog, stamp_ns
+from .episode_log import EpisodeLog, stall_report, stamp_ns
 from .media import GIF_WIDTH
 
 SCENE_TIMEOUT_S = 60.0         # for a (reset) scene to show a frame and its success report
@@ -66,17 +66,34 @@ class DemoNode(ros.Node):
             self.create_subscription(msg_type, topic, callback, qos)
 
     def not_connected(self) -> list[str]:
-        """What is not matched yet between the demo and the nodes (empty: the graph is up)."""
-        wanted = [('planner_node subscribed to ' + topics.INSTRUCTION, self.instruction.get_subscription_count()),
-                  ('sim_bridge_node subscribed to ' + topics.SIM_RESET, self.reset.get_subscription_count()),
+        """What is not matched yet between the demo and the nodes (empty: the graph is up).
+
+        By node name, not by count: the demo's own subscriptions (and a recorder's) are on
+        these topics too, and counting them once let an instruction go out before
+        planner_node could hear it.
+        """
+        def publishes(node_name, topic):
+            return _named(self.get_publishers_info_by_topic(topic), node_name)
+        wanted = [('planner_node subscribed to ' + topics.INSTRUCTION,
+                   self._delivers(self.instruction, topics.INSTRUCTION, 'planner_node')),
+                  ('sim_bridge_node subscribed to ' + topics.SIM_RESET,
+                   self._delivers(self.reset, topics.SIM_RESET, 'sim_bridge_node')),
                   ('controller_node subscribed to ' + topics.NEXT_BEST_POSE,
-                   self.count_subscribers(topics.NEXT_BEST_POSE)),
-                  ('controller_node publishing ' + topics.SEGMENT_RESULT, self.count_publishers(topics.SEGMENT_RESULT)),
-                  ('planner_node publishing ' + topics.NEXT_BEST_POSE, self.count_publishers(topics.NEXT_BEST_POSE))]
-        missing = [what for what, count in wanted if count < 1]
+                   _named(self.get_subscriptions_info_by_topic(topics.NEXT_BEST_POSE), 'controller_node')),
+                  ('controller_node publishing ' + topics.SEGMENT_RESULT,
+                   publishes('controller_node', topics.SEGMENT_RESULT)),
+                  ('planner_node publishing ' + topics.NEXT_BEST_POSE,
+                   publishes('planner_node', topics.NEXT_BEST_POSE))]
+        missing = [what for what, there in wanted if not there]
         if self.count_publishers(topics.STATUS) < len(NODES):
             missing.append(f'{topics.STATUS} from all {len(NODES)} nodes')
         return missing
+
+    def _delivers(self, publisher, topic: str, node_name: str) -> bool:
+        """``node_name`` subscribes to ``topic`` and ``publisher`` has matched every subscription
+        the graph knows of there, so a message published now reaches it."""
+        subscriptions = self.get_subscriptions_info_by_topic(topic)
+        return _named(subscriptions, node_name) and publisher.get_subscription_count() >= len(subscriptions)
 
     def scene_missing(self) -> list[str]:
         """What the current scene has not shown yet: the episode, a front frame, a success report."""
@@ -144,6 +161,11 @@ class DemoNode(ros.Node):
                 q = np.array([msg.position[names.index(n)] for n in self._arm_joints])
                 self.log.joints.append((self.now() - self.log.start,
                                         conversions.time_to_seconds(msg.header.stamp), q))
+
+
+def _named(endpoints, node_name: str) -> bool:
+    """Whether one of these graph endpoints (TopicEndpointInfo) belongs to ``node_name``."""
+    return any(e.node_name == node_name for e in endpoints)
 
 
 class Session:
@@ -257,6 +279,8 @@ def run_episode(session: Session, seed: int, instruction: str | None, timeout_s:
               'success_s': log.success_s, 'wall_s': round(wall_s, 3),
               'segments': [s.to_dict() for s in log.segments], 'cpu': cpu,
               'status': [f'{t:7.2f} {line}' for t, line in log.status]}
+    if not ended:
+        record['stall'] = stall_report(log, node.now())
     return record, log
 
 
