@@ -24,6 +24,7 @@ from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.msg import Header, JointState, TFMessage, Time, TransformStamped
 from hdp_msgs_py.outcome import Outcome
 from hdp_planner.agent import NextBestPose
+from hdp_planner.grounding import Reading
 from hdp_planner.planner_logic import (MAX_INSTRUCTION_CHARS, InstructionRefused, Observations, PlannerLoop,
                                        validate_instruction)
 
@@ -63,6 +64,9 @@ def test_without_a_vocabulary_only_empty_and_overlong_instructions_are_refused()
 class FakeAgent:
     def __init__(self):
         self.calls = []
+
+    def read(self, instruction):
+        return Reading(instruction, False, None, 0.0)
 
     def predict(self, frames, infos, to_world, instruction, proprio):
         self.calls.append((frames, infos, to_world, instruction, proprio))
@@ -106,6 +110,16 @@ def _outcomes(outputs) -> list[tuple]:
     """(instruction, result, segments) of each outcome, after a JSON round trip as on the wire."""
     return [(o.instruction, o.result, o.segments) for o in
             (Outcome.from_json(msg.to_json()) for k, msg in outputs if k == 'outcome')]
+
+
+def test_an_instruction_read_as_a_training_one_says_so_and_the_agent_is_asked_with_the_typed_words():
+    loop = _loop()
+    loop.agent.read = lambda text: Reading('open the top drawer', True, 'open_drawer', 0.9)
+    feed_frames(loop.observations, 1.0)
+    assert _texts(loop.on_instruction('pull out the top drawer', now_s=100.0)) == [
+        "instruction 'pull out the top drawer': up to 3 segments, read as 'open the top drawer' (similarity 0.90)"]
+    loop.step(100.1, 5_000_000_000)
+    assert loop.agent.calls[0][3] == 'pull out the top drawer'      # the agent grounds it itself
 
 
 def test_a_segment_sends_gripper_goal_and_nbp_with_one_stamp_then_waits_for_fresh_frames():

@@ -133,6 +133,9 @@ def configure_hierarchy(parser) -> None:
                              'paraphrase (hdp_msgs_py.instructions paraphrases, never trained on), nonsense (one '
                              'word of the seen instruction kept, the rest made up); both = seen,heldout '
                              '(default seen)')
+    parser.add_argument('--no-grounding', action='store_true',
+                        help='give the agent instructions as they are, not read as the nearest training '
+                             'instruction first (hdp_planner.grounding)')
     parser.add_argument('--min-confidence', type=float, default=None,
                         help="refuse an instruction whose first prediction is less confident "
                              "(default: planner_node's min_confidence)")
@@ -202,7 +205,7 @@ def run_hierarchy(args) -> int:
     agent = None
     if hierarchical:
         agent_path = args.agent_checkpoint or default_checkpoint()
-        agent = NextBestPoseAgent.from_checkpoint(agent_path)
+        agent = NextBestPoseAgent.from_checkpoint(agent_path, ground_instructions=not args.no_grounding)
     try:
         low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler, device=args.device)
                       for name in hierarchical}

@@ -281,6 +281,8 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
                'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'plan_attempts': plan_attempts,
                'think_s': think_s,
+               # The instruction grounding's min_similarity; None: instructions given as they are.
+               'grounding': getattr(getattr(agent, 'grounding', None), 'min_similarity', None),
                'processes': world_size,
                'agents': {}}
     if flat:

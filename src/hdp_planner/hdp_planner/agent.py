@@ -14,6 +14,7 @@ import torch
 from hdp_msgs_py.conversions import Intrinsics, camera_info_to_intrinsics, transform_to_matrix
 
 from . import checkpoint
+from .grounding import InstructionGrounding, Reading
 from .model import NextBestPoseNet, hand_pose, hand_vector, proprio_vector
 from .voxels import collate_clouds, scene_points
 
@@ -60,20 +61,34 @@ def resample_frame(rgb: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
 class NextBestPoseAgent:
     """camera_size: (width, height) the agent was trained at; frames of another size are resampled
     to it (resample_frame), so a 640 x 480 camera shows it what 128 x 96 training frames showed:
-    thin parts (a drawer handle) fill the voxels as they did in training. None: frames as they come."""
+    thin parts (a drawer handle) fill the voxels as they did in training. None: frames as they come.
+    grounding: reads each instruction as a training one first (grounding.py); None: as it comes."""
 
     def __init__(self, model: NextBestPoseNet, device='cpu', training_seeds: dict | None = None,
-                 camera_size: tuple[int, int] | None = None):
+                 camera_size: tuple[int, int] | None = None, grounding: InstructionGrounding | None = None):
         self.model = model.to(device).eval()
         self.device = device
         self.training_seeds = training_seeds or {}     # task -> seeds: evaluation refuses them
         self.camera_size = camera_size
+        self.grounding = grounding
 
     @classmethod
-    def from_checkpoint(cls, path, device='cpu', camera_size: tuple[int, int] | None = None) -> NextBestPoseAgent:
-        """The agent of a checkpoint written by `hdp train high-level`; CheckpointError if it is not one."""
+    def from_checkpoint(cls, path, device='cpu', camera_size: tuple[int, int] | None = None,
+                        ground_instructions: bool = True) -> NextBestPoseAgent:
+        """The agent of a checkpoint written by `hdp train high-level`; CheckpointError if it is not one.
+        Instructions are grounded (``ground_instructions``) for agents reading them with the frozen
+        sentence encoder, over the tasks the checkpoint was trained on."""
         model, stored = checkpoint.load_model(path, device)
-        return cls(model, device, stored['training_seeds'], camera_size)
+        grounding = None
+        if ground_instructions and model.config.language_encoder == 'minilm':
+            grounding = InstructionGrounding(sorted(stored['training_seeds']))
+        return cls(model, device, stored['training_seeds'], camera_size, grounding)
+
+    def read(self, instruction: str) -> Reading:
+        """What the agent is given for ``instruction``: grounding.Reading."""
+        if self.grounding is None:
+            return Reading(instruction, False, None, 0.0)
+        return self.grounding.read(instruction)
 
     def predict(self, rgb_depth_per_camera: dict, camera_infos: dict, camera_to_world: dict,
                 instruction: str, proprio) -> NextBestPose:
@@ -102,6 +117,6 @@ class NextBestPoseAgent:
         else:
             vector = proprio_vector(joint_positions, gripper_open)[None]
         proprio_tensor = torch.as_tensor(vector, device=self.device)
-        prediction = self.model.predict(xyz, rgb, cloud, [instruction], proprio_tensor)
+        prediction = self.model.predict(xyz, rgb, cloud, [self.read(instruction).text], proprio_tensor)
         return NextBestPose(prediction.xyz[0].cpu().numpy().astype(np.float64), prediction.quat[0],
                             bool(prediction.gripper_open[0]), float(prediction.confidence[0]), points)

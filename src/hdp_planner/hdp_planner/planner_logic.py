@@ -307,6 +307,9 @@ class PlannerLoop:
         self.instruction, self.count, self.gripper_open = instruction, 0, None
         self._observe(now_s)
         note = f' (replaces {replaced!r})' if replaced is not None else ''
+        reading = self.agent.read(instruction)
+        if reading.grounded and reading.text != instruction:
+            note += f', read as {reading.text!r} (similarity {reading.similarity:.2f})'
         return [Out('info', f'instruction {instruction!r}: up to {self.max_segments} segments{note}')]
 
     def _observe(self, now_s: float) -> None:

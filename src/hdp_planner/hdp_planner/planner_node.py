@@ -34,6 +34,8 @@ class PlannerNode(ros.Node):
         'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
         'result_timeout_s': (60.0, 's to wait for a segment result before the next segment'),
         'min_confidence': (DEFAULT_MIN_CONFIDENCE, "an instruction whose first NBP is less confident is refused"),
+        'ground_instructions': (True, 'read each instruction as the nearest training one first (grounding.py; '
+                                      'agents with the sentence encoder)'),
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before an instruction fails'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
         'publish_cloud': (False, 'publish the cloud each prediction saw on /hdp/planner/cloud (for a viewer)'),
@@ -57,7 +59,8 @@ class PlannerNode(ros.Node):
                                    f'got {list(camera_size)}')
         checkpoint = p['checkpoint'] or default_checkpoint()
         try:
-            agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size)
+            agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size,
+                                                      ground_instructions=p['ground_instructions'])
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
             raise ros.StartupError(f'cannot load the next-best-pose agent: {err}') from None
         prefix = p['joint_prefix']
