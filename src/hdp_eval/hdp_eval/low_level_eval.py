@@ -22,6 +22,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
+from hdp_controller.controller_logic import reach_error
 from hdp_controller.low_level import Scene
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
 from hdp_motion.rotations import quat_angle
@@ -56,6 +57,7 @@ class EpisodeRecord:
     plan_times: s per planned segment. joint_paths: per executed segment, the
     (K, 7) joint waypoints it ran (current joints first), as lists for JSON.
     grasps_lost: grasps the world broke by overload (a path fighting a hinge).
+    reach_errors: per planned segment, (m, deg) from the plan's last waypoint to its NBP.
     """
     method: str
     task: str
@@ -66,6 +68,7 @@ class EpisodeRecord:
     grasps_lost: int = 0
     plan_times: list = dataclasses.field(default_factory=list)
     joint_paths: list = dataclasses.field(default_factory=list)
+    reach_errors: list = dataclasses.field(default_factory=list)
 
 
 # --- oracle -------------------------------------------------------------------------
@@ -176,6 +179,7 @@ def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points
         if not plan.ok:
             record.failure, record.ik_error = plan.failure or 'no_plan', bool(plan.ik_error)
             return record
+        record.reach_errors.append([round(e, 4) for e in reach_error(plan.joints[-1], goal_pose)])
         path = execute_segment(world, task, plan.joints, request.gripper_open, goal_open, config)
         record.joint_paths.append(path.round(5).tolist())
         record.grasps_lost = world.grasp_lost_count
