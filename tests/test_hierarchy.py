@@ -85,6 +85,15 @@ def test_a_plan_ending_beyond_the_reach_tolerance_is_refused_as_controller_node_
     assert loose.failure == 'segment budget spent'
 
 
+def test_a_low_level_that_draws_noise_draws_each_episodes_from_its_seed():
+    policy = StayPolicy()
+    policy.reseed = lambda seed: seeds.append(seed)
+    seeds = []
+    run_episode('stay', StuckAgent(), policy, 'open_drawer', 4002, max_segments=1)
+    run_episode('stay', StuckAgent(), policy, 'open_drawer', 4003, max_segments=1)
+    assert seeds == [4002, 4003]
+
+
 def test_seen_and_heldout_instructions_differ():
     for task in ('open_drawer', 'pick_up_cup'):
         seen, heldout = (episode_instruction(task, 7, 0, p) for p in ('seen', 'heldout'))

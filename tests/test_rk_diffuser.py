@@ -633,6 +633,26 @@ def test_learned_policies_from_a_checkpoint(tmp_path):
         load_policy('magic', path)
 
 
+def test_an_evaluation_episode_draws_the_same_noise_whatever_ran_before_it(tmp_path):
+    from hdp_controller.baselines import PlannerPolicy
+    from hdp_controller.low_level import start_episode
+    from hdp_controller.policy import load_policy
+    path = tmp_path / 'small.pt'
+    checkpoint.save(path, RKDiffuser(SMALL), {'training_seeds': {}})
+    request = _request()
+    for method in ('joint', 'pose_ik'):
+        policy = load_policy(method, path, 'ddim', steps=2)
+        sample = (lambda: policy.plan(request).joints) if method == 'joint' else (lambda: policy.pose_sampler(request))
+        start_episode(policy, 1000)
+        first = sample()
+        sample()                                   # another segment, or another episode's
+        start_episode(policy, 1000)
+        assert np.array_equal(sample(), first)
+        start_episode(policy, 1001)
+        assert not np.array_equal(sample(), first)
+    start_episode(PlannerPolicy(), 1000)           # nothing to reseed: seeded per request
+
+
 def test_joint_trajectory_is_timed_within_limits_and_refuses_bad_waypoints():
     from hdp_controller.trajectory import TrajectoryError, joint_trajectory
     from hdp_msgs_py.conversions import parse_joint_trajectory

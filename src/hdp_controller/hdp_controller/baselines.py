@@ -87,6 +87,9 @@ class PoseIKPolicy:
         self.name = name
         self.training_seeds = training_seeds
 
+    def reseed(self, episode_seed: int) -> None:
+        self.pose_sampler.reseed(episode_seed)
+
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
         scene = scene or standalone_scene()
         poses = np.asarray(self.pose_sampler(request), dtype=float)

@@ -71,3 +71,13 @@ class LowLevelPolicy(Protocol):
 
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
         ...
+
+
+def start_episode(policy: LowLevelPolicy, seed: int) -> None:
+    """Before an evaluation episode: a policy that draws noise (one with ``reseed``) draws this
+    episode's from its seed. Otherwise its noise would run on from whatever episodes the process
+    planned before, and an episode's result would change with the episodes run beside it (the
+    other rows and phrasings of a table, or how torchrun shards them)."""
+    reseed = getattr(policy, 'reseed', None)
+    if reseed is not None:
+        reseed(seed)

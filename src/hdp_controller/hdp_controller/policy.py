@@ -63,8 +63,14 @@ class _Sampling:
     def __init__(self, model: RKDiffuser, sampler: str = 'ddpm', steps: int | None = None, seed: int = 0,
                  training_seeds: dict | None = None, guidance: float | None = None, device: str = 'cpu'):
         self.model, self.sampler, self.steps, self.guidance = model.to(device), sampler, steps, guidance
-        self.seed, self.calls, self.device = seed, 0, device
+        self.base_seed, self.seed, self.calls, self.device = seed, seed, 0, device
         self.training_seeds = training_seeds
+
+    def reseed(self, episode_seed: int) -> None:
+        """Draw from (the policy's seed, ``episode_seed``) on, call 0 first: an evaluation episode
+        then plans the same whatever ran before it in the process (low_level.start_episode)."""
+        self.seed = int(np.random.SeedSequence([self.base_seed, episode_seed]).generate_state(1)[0])
+        self.calls = 0
 
     def _sample(self, request: SegmentRequest, which) -> dict:
         """The samples on the CPU, wherever the model runs (refinement and IK run there)."""

@@ -31,6 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hdp_controller.controller_logic import plan_within_reach, reach_error
+from hdp_controller.low_level import start_episode
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
 from hdp_msgs_py import distributed, instructions
 from hdp_planner import language
@@ -133,6 +134,7 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
             return run_episode(name, agent, low_level, task_name, seed, phrasing, max_segments, camera_size, own,
                                min_confidence, reach_tolerance, think_s, plan_attempts)
     task, _, variation = experts.reachable_scene(world, task_name, seed)
+    start_episode(low_level, seed)
     record = HierarchyRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
     cameras = default_cameras(*camera_size)
     rng = np.random.default_rng(seed)

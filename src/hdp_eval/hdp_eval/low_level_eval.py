@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hdp_controller.controller_logic import reach_error
-from hdp_controller.low_level import Scene
+from hdp_controller.low_level import Scene, start_episode
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
 from hdp_motion.rotations import quat_angle
 from hdp_msgs_py import distributed
@@ -168,6 +168,7 @@ def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points
             return run_episode(policy, oracle, camera_size, n_points, own, config)
     config = config or experts.ExpertConfig()
     task, _, _ = experts.reachable_scene(world, oracle.task, oracle.seed)
+    start_episode(policy, oracle.seed)
     camera = front_camera(*camera_size)
     rng = np.random.default_rng(oracle.seed)      # point subsampling: the same for every method
     record = EpisodeRecord(policy.name, oracle.task, oracle.seed)
