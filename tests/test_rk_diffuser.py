@@ -633,6 +633,25 @@ def test_learned_policies_from_a_checkpoint(tmp_path):
         load_policy('magic', path)
 
 
+@pytest.mark.parametrize('errors_m, draws, kept', [
+    ([0.001], 1, 0.001),                  # refined onto the NBP: one draw
+    ([0.2, 0.05, 0.001], 3, 0.001),       # stalled twice, then converged
+    ([0.2, 0.05, 0.1], 3, 0.05),          # never converged: the nearest of the three
+])
+def test_rkd_draws_again_while_refinement_leaves_the_end_off_the_nbp(tmp_path, errors_m, draws, kept):
+    from hdp_controller.low_level import PlanResult
+    from hdp_controller.policy import load_policy
+    path = tmp_path / 'small.pt'
+    checkpoint.save(path, RKDiffuser(SMALL), {'training_seeds': {}})
+    policy = load_policy('rkd', path, 'ddim', steps=2)
+    queue = list(errors_m)
+    policy._plan_once = lambda request: PlanResult(np.zeros((2, 7)), extras={'goal_error_m': queue.pop(0),
+                                                                              'goal_error_deg': 1.0})
+    plan = policy.plan(_request())
+    assert plan.extras['draws'] == draws and plan.extras['goal_error_m'] == kept
+    assert load_policy('rkd', path, 'ddim', steps=2, draws=1).draws == 1
+
+
 def test_an_evaluation_episode_draws_the_same_noise_whatever_ran_before_it(tmp_path):
     from hdp_controller.baselines import PlannerPolicy
     from hdp_controller.low_level import start_episode

@@ -35,6 +35,12 @@ DEFAULT_CHECKPOINT_NAME = 'rk_diffuser_11tasks.pt'      # the eleven-task RK-Dif
 FAST_STEPS = 5
 FAST_GUIDANCE = 1.0
 REFINE_STEPS = 50
+# rkd draws again (up to DRAWS samples, keeping the one that ends nearest) when refinement has
+# not brought the end onto the NBP: such a sample lies in an arm configuration from which
+# Gauss-Newton stalls 5-25 cm short (open_box and toilet_seat_up on validation seeds 900-919),
+# while the refined end of almost every other segment is exact (p95 0.0 cm / 0.02 deg).
+DRAWS = 3
+CONVERGED_M, CONVERGED_DEG = 0.01, 5.0
 
 
 def default_checkpoint() -> Path:
@@ -93,16 +99,31 @@ class RKDPolicy(_Sampling):
     name = 'rkd'
 
     def __init__(self, *args, refine_steps: int = REFINE_STEPS, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'],
-                 **kwargs):
+                 draws: int = DRAWS, **kwargs):
         super().__init__(*args, **kwargs)
         self.refine_steps, self.limits = refine_steps, limits      # the robot's: refinement stays inside
+        self.draws = draws
 
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
+        """Sample, refine; again (up to ``draws`` in all) while the refined end misses the NBP by
+        more than CONVERGED_M / CONVERGED_DEG. extras['draws'] says how many it took."""
+        best = None
+        for draw in range(1, self.draws + 1):
+            plan = self._plan_once(request)
+            error = (plan.extras['goal_error_m'], plan.extras['goal_error_deg'])
+            if best is None or error < best[1]:
+                best = (plan, error)
+            if error[0] <= CONVERGED_M and error[1] <= CONVERGED_DEG:
+                break
+        best[0].extras['draws'] = draw
+        return best[0]
+
+    def _plan_once(self, request: SegmentRequest) -> PlanResult:
         started = time.perf_counter()
         out = self._sample(request, ('pose', 'joint'))
         sampled = time.perf_counter()
         joints = refine(out['joints'], out['poses'], steps=self.refine_steps, limits=self.limits)
-        translation, rotation = goal_error(joints, out['poses'][:, -1])
+        translation, rotation = goal_error(joints, torch.as_tensor(conditions(request)['goal_pose']))
         return PlanResult(joints[0].numpy(), poses=out['poses'][0].numpy(), extras={
             'unrefined_joints': out['joints'][0].numpy(), 'sample_s': sampled - started,
             'refine_s': time.perf_counter() - sampled, 'goal_error_m': float(translation[0]),
@@ -121,13 +142,14 @@ class JointDiffusionPolicy(_Sampling):
 
 def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps: int | None = None,
                 seed: int = 0, guidance: float | None = None, refine_steps: int = REFINE_STEPS,
-                limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'], device: str = 'cpu'):
+                limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'], device: str = 'cpu', draws: int = DRAWS):
     """A LowLevelPolicy by name; learned ones from ``checkpoint_path`` (default: the released one).
     ``limits``: the robot's joint limits, which rkd's refinement keeps to. ``device``: where the
     diffusers sample (distributed.torch_device checks it); refinement stays on the CPU.
 
     sampler 'ddpm' runs all 100 steps with the checkpoint's guidance; 'ddim' defaults to
-    FAST_STEPS with FAST_GUIDANCE. ``steps`` and ``guidance`` override those defaults.
+    FAST_STEPS with FAST_GUIDANCE. ``steps`` and ``guidance`` override those defaults. ``draws``:
+    rkd's samples per segment at most (RKDPolicy.plan; 1 is the paper's single draw).
     """
     if method not in METHODS:
         raise ValueError(f'unknown low-level method {method!r}; choose from {", ".join(METHODS)}')
@@ -142,7 +164,7 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
     common = dict(sampler=sampler, steps=steps or (FAST_STEPS if fast else None), seed=seed,
                   guidance=guidance, training_seeds=payload.get('training_seeds'), device=distributed.torch_device(device))
     if method == 'rkd':
-        return RKDPolicy(model, refine_steps=refine_steps, limits=limits, **common)
+        return RKDPolicy(model, refine_steps=refine_steps, limits=limits, draws=draws, **common)
     if method == 'joint':
         return JointDiffusionPolicy(model, **common)
     return PoseIKPolicy(PoseSampler(model, **common), training_seeds=common['training_seeds'])

@@ -29,6 +29,9 @@ def configure(parser) -> None:
                              "the checkpoint's for ddpm)")
     parser.add_argument('--refine-steps', type=int, default=50,
                         help="rkd's Gauss-Newton refinement steps (default 50)")
+    parser.add_argument('--rkd-draws', type=int,
+                        help="rkd's samples per segment at most: it draws again while refinement leaves the end "
+                             "off the NBP (default: hdp_controller.policy.DRAWS, 3; 1 = the paper's single draw)")
     parser.add_argument('--json', type=Path, help='also write every episode record here')
     parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1); under torchrun, '
                         'per rank: the ranks share the episodes and rank 0 prints and writes the result')
@@ -64,9 +67,11 @@ def run(args) -> int:
     if args.seed_start < 0:
         raise SystemExit(f'--seed-start must be >= 0, got {args.seed_start}')
     tasks = _tasks(args.tasks)
-    if (args.steps is not None and args.steps < 1) or args.refine_steps < 1:
-        raise SystemExit('--steps and --refine-steps must be >= 1')
+    if (args.steps is not None and args.steps < 1) or args.refine_steps < 1 or (args.rkd_draws or 1) < 1:
+        raise SystemExit('--steps, --refine-steps and --rkd-draws must be >= 1')
     sampling = dict(steps=args.steps, guidance=args.guidance, refine_steps=args.refine_steps)
+    if args.rkd_draws is not None:
+        sampling['draws'] = args.rkd_draws
     names = _names(args.methods, METHODS, 'method')
     start = time.monotonic()
     try:

@@ -11,6 +11,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from hdp_msgs_py import instructions
 from hdp_msgs_py.conversions import Intrinsics, camera_info_to_intrinsics, transform_to_matrix
 
 from . import checkpoint
@@ -79,9 +80,10 @@ class NextBestPoseAgent:
         Instructions are grounded (``ground_instructions``) for agents reading them with the frozen
         sentence encoder, over the tasks the checkpoint was trained on."""
         model, stored = checkpoint.load_model(path, device)
+        tasks = sorted(t for t in stored['training_seeds'] if t in instructions.TASKS)
         grounding = None
-        if ground_instructions and model.config.language_encoder == 'minilm':
-            grounding = InstructionGrounding(sorted(stored['training_seeds']))
+        if ground_instructions and model.config.language_encoder == 'minilm' and tasks:
+            grounding = InstructionGrounding(tasks)
         return cls(model, device, stored['training_seeds'], camera_size, grounding)
 
     def read(self, instruction: str) -> Reading:
