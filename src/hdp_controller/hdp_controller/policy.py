@@ -36,9 +36,9 @@ FAST_STEPS = 5
 FAST_GUIDANCE = 1.0
 REFINE_STEPS = 50
 # rkd draws again (up to DRAWS samples, keeping the one that ends nearest) when refinement has
-# not brought the end onto the NBP: such a sample lies in an arm configuration from which
-# Gauss-Newton stalls 5-25 cm short (open_box and toilet_seat_up on validation seeds 900-919),
-# while the refined end of almost every other segment is exact (p95 0.0 cm / 0.02 deg).
+# not brought the end onto the NBP: on validation seeds 900-919 it stalled 5 and 22 cm short on
+# two open_box segments, a new draw converged, while the refined end of almost every other
+# segment is exact (p95 0.0 cm / 0.02 deg). Some NBPs stall in every draw (models/rk_diffuser.md).
 DRAWS = 3
 CONVERGED_M, CONVERGED_DEG = 0.01, 5.0
 
