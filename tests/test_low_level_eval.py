@@ -219,7 +219,8 @@ def test_cli_help_and_a_planner_run():
     (['--methods', 'magic'], 'unknown method'),
     (['--episodes', '0'], '--episodes and --workers must be >= 1'),
     (['--seed-start', '-3'], '--seed-start must be >= 0'),
-    (['--refine-steps', '0'], '--steps and --refine-steps must be >= 1'),
+    (['--refine-steps', '0'], '--steps, --refine-steps and --rkd-draws must be >= 1'),
+    (['--rkd-draws', '0'], '--steps, --refine-steps and --rkd-draws must be >= 1'),
 ])
 def test_cli_refuses_bad_arguments(args, message):
     base = {'--tasks': 'reach_target', '--methods': 'planner', '--episodes': '1', '--seed-start': '0'}

@@ -21,7 +21,7 @@ from hdp_motion import panda, planning
 from hdp_motion.rotations import quat_angle
 from hdp_msgs_py import workspace
 
-from .low_level import PlanResult, Scene, SegmentRequest
+from .low_level import PlanResult, Scene, SegmentRequest, start_episode
 
 
 @functools.cache
@@ -88,7 +88,7 @@ class PoseIKPolicy:
         self.training_seeds = training_seeds
 
     def reseed(self, episode_seed: int) -> None:
-        self.pose_sampler.reseed(episode_seed)
+        start_episode(self.pose_sampler, episode_seed)      # a sampler without noise has nothing to reseed
 
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
         scene = scene or standalone_scene()

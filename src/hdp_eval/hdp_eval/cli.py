@@ -67,7 +67,8 @@ def run(args) -> int:
     if args.seed_start < 0:
         raise SystemExit(f'--seed-start must be >= 0, got {args.seed_start}')
     tasks = _tasks(args.tasks)
-    if (args.steps is not None and args.steps < 1) or args.refine_steps < 1 or (args.rkd_draws or 1) < 1:
+    if ((args.steps is not None and args.steps < 1) or args.refine_steps < 1
+            or (args.rkd_draws is not None and args.rkd_draws < 1)):
         raise SystemExit('--steps, --refine-steps and --rkd-draws must be >= 1')
     sampling = dict(steps=args.steps, guidance=args.guidance, refine_steps=args.refine_steps)
     if args.rkd_draws is not None:
