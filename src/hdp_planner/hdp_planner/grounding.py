@@ -28,7 +28,7 @@ import torch
 
 from hdp_msgs_py import instructions
 
-from .language import words
+from .language import training_phrasings, words
 from .sentence_encoder import frozen_minilm
 
 DEFAULT_MIN_SIMILARITY = 0.6
@@ -57,7 +57,7 @@ class InstructionGrounding:
         self.min_similarity = min_similarity
         self.encoder = frozen_minilm()
         self.variation_words = {w for t in tasks for name in instructions.TASKS[t].variations for w in words(name)}
-        self.templates = [(task, template) for task in tasks for template in instructions.TASKS[task].phrasings[:-1]]
+        self.templates = [(task, template) for task in tasks for template in training_phrasings(task)]
         self.embeddings = self._embed([template for _, template in self.templates])   # (T, 384)
         self.read = functools.lru_cache(maxsize=1024)(self._read)
 
