@@ -645,7 +645,7 @@ def test_rkd_draws_again_while_refinement_leaves_the_end_off_the_nbp(tmp_path, e
     checkpoint.save(path, RKDiffuser(SMALL), {'training_seeds': {}})
     policy = load_policy('rkd', path, 'ddim', steps=2)
     queue = list(errors_m)
-    policy._plan_once = lambda request: PlanResult(np.zeros((2, 7)), extras={'goal_error_m': queue.pop(0),
+    policy._plan_once = lambda request, goal: PlanResult(np.zeros((2, 7)), extras={'goal_error_m': queue.pop(0),
                                                                               'goal_error_deg': 1.0})
     plan = policy.plan(_request())
     assert plan.extras['draws'] == draws and plan.extras['goal_error_m'] == kept

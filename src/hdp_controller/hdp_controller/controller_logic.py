@@ -30,7 +30,7 @@ from hdp_motion import kinematics, panda
 from hdp_msgs_py import conversions, topics, workspace
 from hdp_msgs_py.msg import Header
 
-from .low_level import SegmentRequest
+from .low_level import SegmentRequest, nearest_of_draws
 from .observation import points_from_messages
 from .refine import goal_error
 from .trajectory import TrajectoryError, joint_trajectory
@@ -169,20 +169,10 @@ def segment_request(state: ArmState, gripper_open: bool, goal_pose, goal_open: b
 def plan_within_reach(policy, request: SegmentRequest, reach_tolerance: tuple[float, float] | None,
                       attempts: int = 1, scene=None):
     """(plan, draws): ``policy.plan`` drawn up to ``attempts`` times until a plan ends within
-    ``reach_tolerance`` (m, deg) of the NBP, else the draw that ended nearest. A plan that failed
-    outright comes back at once, as does any plan when the tolerance is None. Each draw of a
-    diffusion policy uses fresh noise."""
-    best = None
-    for draws in range(1, max(1, attempts) + 1):
-        plan = policy.plan(request, scene)
-        if not plan.ok or reach_tolerance is None:
-            return plan, draws
-        error = reach_error(plan.joints[-1], request.goal_pose)
-        if best is None or error < best[1]:
-            best = (plan, error)
-        if error[0] <= reach_tolerance[0] and error[1] <= reach_tolerance[1]:
-            break
-    return best[0], draws
+    ``reach_tolerance`` (m, deg) of the NBP, else the draw that ended nearest (nearest_of_draws).
+    Each draw of a diffusion policy uses fresh noise."""
+    return nearest_of_draws(lambda: policy.plan(request, scene),
+                            lambda plan: reach_error(plan.joints[-1], request.goal_pose), reach_tolerance, attempts)
 
 
 def plan_segment(policy, request: SegmentRequest, joint_names, velocity_scale: float,

@@ -81,3 +81,20 @@ def start_episode(policy: LowLevelPolicy, seed: int) -> None:
     reseed = getattr(policy, 'reseed', None)
     if reseed is not None:
         reseed(seed)
+
+
+def nearest_of_draws(draw, error, tolerance: tuple[float, float] | None, attempts: int):
+    """(plan, draws): ``draw()`` up to ``attempts`` times until ``error(plan)`` (m, deg) is within
+    ``tolerance``, else the draw that ended nearest. A plan that failed outright comes back at
+    once, as does any plan when the tolerance is None."""
+    best = None
+    for draws in range(1, max(1, attempts) + 1):
+        plan = draw()
+        if not plan.ok or tolerance is None:
+            return plan, draws
+        miss = error(plan)
+        if best is None or miss < best[1]:
+            best = (plan, miss)
+        if miss[0] <= tolerance[0] and miss[1] <= tolerance[1]:
+            break
+    return best[0], draws

@@ -20,7 +20,7 @@ from hdp_motion import panda
 from hdp_msgs_py import checkpoints, distributed
 
 from . import checkpoint
-from .low_level import PlanResult, Scene, SegmentRequest
+from .low_level import PlanResult, Scene, SegmentRequest, nearest_of_draws
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses
 from .rk_diffuser import RKDiffuser, as_batch
 
@@ -107,23 +107,19 @@ class RKDPolicy(_Sampling):
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
         """Sample, refine; again (up to ``draws`` in all) while the refined end misses the NBP by
         more than CONVERGED_M / CONVERGED_DEG. extras['draws'] says how many it took."""
-        best = None
-        for draw in range(1, self.draws + 1):
-            plan = self._plan_once(request)
-            error = (plan.extras['goal_error_m'], plan.extras['goal_error_deg'])
-            if best is None or error < best[1]:
-                best = (plan, error)
-            if error[0] <= CONVERGED_M and error[1] <= CONVERGED_DEG:
-                break
-        best[0].extras['draws'] = draw
-        return best[0]
+        goal = torch.as_tensor(conditions(request)['goal_pose'])
+        plan, draws = nearest_of_draws(lambda: self._plan_once(request, goal),
+                                       lambda p: (p.extras['goal_error_m'], p.extras['goal_error_deg']),
+                                       (CONVERGED_M, CONVERGED_DEG), self.draws)
+        plan.extras['draws'] = draws
+        return plan
 
-    def _plan_once(self, request: SegmentRequest) -> PlanResult:
+    def _plan_once(self, request: SegmentRequest, goal: torch.Tensor) -> PlanResult:
         started = time.perf_counter()
         out = self._sample(request, ('pose', 'joint'))
         sampled = time.perf_counter()
         joints = refine(out['joints'], out['poses'], steps=self.refine_steps, limits=self.limits)
-        translation, rotation = goal_error(joints, torch.as_tensor(conditions(request)['goal_pose']))
+        translation, rotation = goal_error(joints, goal)
         return PlanResult(joints[0].numpy(), poses=out['poses'][0].numpy(), extras={
             'unrefined_joints': out['joints'][0].numpy(), 'sample_s': sampled - started,
             'refine_s': time.perf_counter() - sampled, 'goal_error_m': float(translation[0]),

@@ -95,10 +95,14 @@ def task_names(text: str) -> list[str]:
     return names
 
 
+def fill(template: str, name: str) -> str:
+    """``template`` with every ``{}`` filled with the variation's ``name``."""
+    return template.format(*[name] * template.count('{}'))
+
+
 def instruction(task: str, variation: int, phrasings, rng: np.random.Generator) -> str:
     """An instruction for ``variation`` of ``task`` in one of ``phrasings``, drawn with ``rng``."""
-    template = rng.choice(list(phrasings))
-    return template.format(*[TASKS[task].variations[variation]] * template.count('{}'))
+    return fill(rng.choice(list(phrasings)), TASKS[task].variations[variation])
 
 
 EVALUATION_PHRASINGS = ('seen', 'heldout', 'paraphrase')

@@ -74,10 +74,8 @@ class InstructionGrounding:
         if similarity < self.min_similarity:
             return unchanged
         variations = instructions.TASKS[task].variations
-        if len(variations) == 1:
-            return Reading(template.format(*[variations[0]] * template.count('{}')), True, task, similarity)
         said = set(words(text))
-        named = [name for name in variations if set(words(name)) <= said]
+        named = variations if len(variations) == 1 else [n for n in variations if set(words(n)) <= said]
         if len(named) != 1:
             return unchanged._replace(task=task)
-        return Reading(template.format(*named * template.count('{}')), True, task, similarity)
+        return Reading(instructions.fill(template, named[0]), True, task, similarity)
