@@ -17,7 +17,7 @@ from hdp_controller.diffusion import TrajectoryDiffusion
 from hdp_controller.low_level import HORIZON, SegmentRequest
 from hdp_controller.pointnet2 import PointNet2Encoder, ball_query, farthest_point_sample
 from hdp_controller.policy import conditions
-from hdp_controller.refine import goal_error, refine, smooth_poses
+from hdp_controller.refine import goal_error, refine, smooth_poses, track
 from hdp_controller.rk_diffuser import (RKDConfig, RKDiffuser, goal_loss, joint_motion, joints_from_motion,
                                         smoothness_loss)
 from hdp_controller.unet import TemporalUnet
@@ -296,6 +296,20 @@ def test_refinement_holds_the_start_respects_limits_and_reaches_the_goal():
     beyond[..., 3] = torch.linspace(-1.0, 0.5, HORIZON)
     out = refine(truth, kinematics.fk_pose(beyond), steps=30)
     assert (out[:, 1:, 3] <= panda.UPPER[3]).all() and (out >= torch.tensor(panda.LOWER, dtype=out.dtype)).all()
+
+
+def test_tracking_follows_a_long_pose_path_from_the_start_in_the_start_configuration():
+    """track: every waypoint solved from its predecessor, so a sweep of 2 rad at the base is
+    followed in one motion of the start's configuration."""
+    q0 = torch.tensor(panda.HOME, dtype=torch.float32)
+    q1 = q0 + torch.tensor([2.0, 0.4, -0.3, 0.6, 0.5, 1.5, 0.5])
+    truth = (q0 + (q1 - q0) * torch.linspace(0, 1, HORIZON)[:, None])[None]
+    tracked = track(q0[None], kinematics.fk_pose(truth))
+    assert torch.equal(tracked[:, 0], q0[None])
+    translation, rotation = goal_error(tracked, kinematics.fk_pose(truth[:, -1]))
+    assert translation.item() < 1e-3 and np.degrees(rotation.item()) < 0.2
+    assert tracked.diff(dim=1).abs().max() < 0.05                            # one motion, no jump
+    assert panda.within_limits(tracked[0].numpy())
 
 
 def test_refinement_keeps_a_joint_trajectory_that_ends_on_the_goal_turned_half_a_turn():
@@ -633,23 +647,53 @@ def test_learned_policies_from_a_checkpoint(tmp_path):
         load_policy('magic', path)
 
 
-@pytest.mark.parametrize('errors_m, draws, kept', [
-    ([0.001], 1, 0.001),                  # refined onto the NBP: one draw
-    ([0.2, 0.05, 0.001], 3, 0.001),       # stalled twice, then converged
-    ([0.2, 0.05, 0.1], 3, 0.05),          # never converged: the nearest of the three
+@pytest.mark.parametrize('errors_m, from_start_m, draws, kept', [
+    ([0.001], None, 1, 0.001),                  # refined onto the NBP: one draw
+    ([0.2, 0.05, 0.001], None, 3, 0.001),       # stalled twice, then converged
+    ([0.2, 0.05, 0.1], 0.002, 3, 0.002),        # never converged: refined from the start, which is nearer
+    ([0.2, 0.05, 0.1], 0.3, 3, 0.05),           # nor from the start: the nearest of the three draws
 ])
-def test_rkd_draws_again_while_refinement_leaves_the_end_off_the_nbp(tmp_path, errors_m, draws, kept):
+def test_rkd_draws_again_while_refinement_leaves_the_end_off_the_nbp(tmp_path, errors_m, from_start_m, draws, kept):
     from hdp_controller.low_level import PlanResult
     from hdp_controller.policy import load_policy
     path = tmp_path / 'small.pt'
     checkpoint.save(path, RKDiffuser(SMALL), {'training_seeds': {}})
+
+    def planned(error_m, **extras):
+        return PlanResult(np.zeros((2, 7)), extras={'goal_error_m': error_m, 'goal_error_deg': 1.0, **extras})
+
+    for allowed in (3, 1):
+        policy = load_policy('rkd', path, 'ddim', steps=2, draws=allowed)
+        queue, from_start = list(errors_m), []
+        policy._plan_once = lambda request, goal: planned(queue.pop(0))
+        policy._from_start = lambda request, nearest, goal: from_start.append(1) or planned(from_start_m)
+        plan = policy.plan(_request())
+        if allowed == 1:             # the paper's single draw, refined once from its own sample
+            assert plan.extras['draws'] == 1 and plan.extras['goal_error_m'] == errors_m[0] and not from_start
+            continue
+        assert plan.extras['draws'] == draws and plan.extras['goal_error_m'] == kept
+        assert len(from_start) == (from_start_m is not None)
+        assert plan.extras['from_start'] == (kept == from_start_m)
+
+
+def test_rkd_tracked_from_the_start_reaches_a_pose_path_its_joint_sample_did_not(tmp_path):
+    """The fallback of a segment whose every draw stalled: the nearest draw's poses, tracked from
+    the arm's own configuration, reach the NBP inside the limits."""
+    from hdp_controller.low_level import PlanResult
+    from hdp_controller.policy import conditions, load_policy
+    from hdp_motion.kinematics import fk_pose as fk
+    path = tmp_path / 'small.pt'
+    checkpoint.save(path, RKDiffuser(SMALL), {'training_seeds': {}})
     policy = load_policy('rkd', path, 'ddim', steps=2)
-    queue = list(errors_m)
-    policy._plan_once = lambda request, goal: PlanResult(np.zeros((2, 7)), extras={'goal_error_m': queue.pop(0),
-                                                                              'goal_error_deg': 1.0})
-    plan = policy.plan(_request())
-    assert plan.extras['draws'] == draws and plan.extras['goal_error_m'] == kept
-    assert load_policy('rkd', path, 'ddim', steps=2, draws=1).draws == 1
+    request = _request()
+    goal_q = np.asarray(panda.HOME) + [0.2, 0.1, 0.0, 0.2, 0.0, -0.1, 0.3]       # _request's goal
+    poses = fk(torch.tensor(np.linspace(panda.HOME, goal_q, HORIZON), dtype=torch.float32)).numpy()
+    stalled = PlanResult(np.zeros((HORIZON, 7)), poses=poses, extras={'goal_error_m': 0.2, 'goal_error_deg': 40.0,
+                                                                      'draws': 3})
+    plan = policy._from_start(request, stalled, torch.as_tensor(conditions(request)['goal_pose']))
+    assert plan.extras['draws'] == 3 and plan.extras['goal_error_m'] < 2e-3 and plan.extras['goal_error_deg'] < 0.5
+    assert np.allclose(plan.joints[0], request.q, atol=1e-5) and panda.within_limits(plan.joints)
+    assert np.abs(np.diff(plan.joints, axis=0)).max() < 0.1          # one motion, no configuration jump
 
 
 def test_an_evaluation_episode_draws_the_same_noise_whatever_ran_before_it(tmp_path):

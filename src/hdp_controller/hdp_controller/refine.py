@@ -47,6 +47,7 @@ MAX_JOINT_STEP = 0.5      # rad
 STUCK_TRANSLATION = 0.005  # m
 STUCK_ROTATION = 0.05      # rad
 _RESTART_STEPS = 10        # from a predecessor millimetres away, a few steps converge
+_TRACK_STEPS = 10          # track(): the same, for every waypoint
 # Passes of a [1, 2, 1] / 4 filter over the sampled trajectories before refinement.
 SMOOTHING_PASSES = 4
 
@@ -77,6 +78,27 @@ def refine(joints: torch.Tensor, poses: torch.Tensor, steps: int = 50, max_step:
     solve = functools.partial(_gauss_newton, steps=steps, max_step=max_step, damping=damping, limits=(lower, upper))
     q = solve(sampled.reshape(-1, 7), _flat(targets)).reshape(sampled.shape)
     return _restart_stuck(torch.cat([start, q], dim=1), targets, solve)
+
+
+def track(start: torch.Tensor, poses: torch.Tensor, steps: int = _TRACK_STEPS, max_step: float = 0.1,
+          damping: float = 1e-2, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']) -> torch.Tensor:
+    """start (B, 7) rad, poses (B, T, 7) -> joints (B, T, 7) from ``start``: the (smoothed) pose
+    trajectory followed waypoint by waypoint, each solved from its solved predecessor, so the
+    whole path stays in the start's arm configuration. T - 1 solves one after another, where
+    ``refine`` solves every waypoint at once from the joint sample's configuration. Each solve
+    is the least joint motion, so a long path drifts in the null space and can end against a
+    joint limit; ``refine``'s sample does not, which is why this is only its fallback.
+    """
+    lower = torch.tensor(limits.lower, dtype=start.dtype) + _LIMIT_MARGIN
+    upper = torch.tensor(limits.upper, dtype=start.dtype) - _LIMIT_MARGIN
+    poses = smooth_poses(poses.detach(), SMOOTHING_PASSES)
+    held = start.detach()[:, None].expand(-1, poses.shape[1] - 1, 7)
+    rotation = hand_symmetric_targets(quat_to_matrix(poses[:, 1:, 3:]), forward_kinematics(held)[1])
+    joints = [start.detach()]
+    for t in range(poses.shape[1] - 1):
+        joints.append(_gauss_newton(joints[-1], (poses[:, t + 1, :3], rotation[:, t]), steps, max_step, damping,
+                                    (lower, upper)))
+    return torch.stack(joints, 1)
 
 
 def _gauss_newton(q, targets, steps: int, max_step: float, damping: float, limits) -> torch.Tensor:

@@ -58,6 +58,7 @@ class EpisodeRecord:
     (K, 7) joint waypoints it ran (current joints first), as lists for JSON.
     grasps_lost: grasps the world broke by overload (a path fighting a hinge).
     reach_errors: per planned segment, (m, deg) from the plan's last waypoint to its NBP.
+    plan_stats: per planned segment, the plan's scalar extras (rkd: draws, from_start, timings).
     """
     method: str
     task: str
@@ -69,6 +70,7 @@ class EpisodeRecord:
     plan_times: list = dataclasses.field(default_factory=list)
     joint_paths: list = dataclasses.field(default_factory=list)
     reach_errors: list = dataclasses.field(default_factory=list)
+    plan_stats: list = dataclasses.field(default_factory=list)
 
 
 # --- oracle -------------------------------------------------------------------------
@@ -181,6 +183,7 @@ def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points
             record.failure, record.ik_error = plan.failure or 'no_plan', bool(plan.ik_error)
             return record
         record.reach_errors.append([round(e, 4) for e in reach_error(plan.joints[-1], goal_pose)])
+        record.plan_stats.append({k: v for k, v in plan.extras.items() if isinstance(v, (bool, int, float))})
         path = execute_segment(world, task, plan.joints, request.gripper_open, goal_open, config)
         record.joint_paths.append(path.round(5).tolist())
         record.grasps_lost = world.grasp_lost_count
