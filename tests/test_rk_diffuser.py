@@ -312,6 +312,19 @@ def test_tracking_follows_a_long_pose_path_from_the_start_in_the_start_configura
     assert panda.within_limits(tracked[0].numpy())
 
 
+def test_tracking_keeps_the_joints_off_their_limits_where_least_motion_drifts_into_one():
+    """Least-motion steps alone follow this path into a jump of 0.34 rad with a joint 0.18 rad from
+    its limit; the null-space step towards mid-range keeps it one motion, well inside the limits."""
+    q0 = torch.tensor(panda.HOME, dtype=torch.float32)
+    q1 = q0 + torch.tensor([2.0, 0.4, -0.3, 0.6, 0.5, 2.1, -0.5])          # joint 6 ends 0.08 rad from its limit
+    truth = (q0 + (q1 - q0) * torch.linspace(0, 1, HORIZON)[:, None])[None]
+    tracked = track(q0[None], kinematics.fk_pose(truth))[0]
+    translation, _ = goal_error(tracked[None], kinematics.fk_pose(truth[:, -1]))
+    assert translation.item() < 1e-3 and tracked.diff(dim=0).abs().max() < 0.1
+    margin = np.minimum(tracked.numpy() - panda.LOWER, panda.UPPER - tracked.numpy())
+    assert margin.min() > 0.3
+
+
 def test_refinement_keeps_a_joint_trajectory_that_ends_on_the_goal_turned_half_a_turn():
     """The Panda hand's fingers are alike: the goal turned half a turn about the approach axis
     is the same grasp. A joint trajectory that ends there is kept, not wound back through half
