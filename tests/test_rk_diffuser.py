@@ -663,8 +663,8 @@ def test_learned_policies_from_a_checkpoint(tmp_path):
 @pytest.mark.parametrize('errors_m, from_start_m, draws, kept', [
     ([0.001], None, 1, 0.001),                  # refined onto the NBP: one draw
     ([0.2, 0.05, 0.001], None, 3, 0.001),       # stalled twice, then converged
-    ([0.2, 0.05, 0.1], 0.002, 3, 0.002),        # never converged: refined from the start, which is nearer
-    ([0.2, 0.05, 0.1], 0.3, 3, 0.05),           # nor from the start: the nearest of the three draws
+    ([0.2, 0.05, 0.1], 0.002, 3, 0.002),        # never converged: tracked from the start, which is nearer
+    ([0.2, 0.05, 0.1], 0.3, 3, 0.05),           # tracking no nearer: the nearest of the three draws
 ])
 def test_rkd_draws_again_while_refinement_leaves_the_end_off_the_nbp(tmp_path, errors_m, from_start_m, draws, kept):
     from hdp_controller.low_level import PlanResult

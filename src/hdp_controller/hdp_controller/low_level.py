@@ -83,6 +83,11 @@ def start_episode(policy: LowLevelPolicy, seed: int) -> None:
         reseed(seed)
 
 
+def within(miss: tuple[float, float], tolerance: tuple[float, float]) -> bool:
+    """(m, deg) miss inside (m, deg) tolerance, both parts."""
+    return miss[0] <= tolerance[0] and miss[1] <= tolerance[1]
+
+
 def nearest_of_draws(draw, error, tolerance: tuple[float, float] | None, attempts: int):
     """(plan, draws): ``draw()`` up to ``attempts`` times until ``error(plan)`` (m, deg) is within
     ``tolerance``, else the draw that ended nearest. A plan that failed outright comes back at
@@ -95,6 +100,6 @@ def nearest_of_draws(draw, error, tolerance: tuple[float, float] | None, attempt
         miss = error(plan)
         if best is None or miss < best[1]:
             best = (plan, miss)
-        if miss[0] <= tolerance[0] and miss[1] <= tolerance[1]:
+        if within(miss, tolerance):
             break
     return best[0], draws

@@ -20,7 +20,7 @@ from hdp_motion import panda
 from hdp_msgs_py import checkpoints, distributed
 
 from . import checkpoint
-from .low_level import PlanResult, Scene, SegmentRequest, nearest_of_draws
+from .low_level import PlanResult, Scene, SegmentRequest, nearest_of_draws, within
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses, track
 from .rk_diffuser import RKDiffuser, as_batch
 
@@ -109,11 +109,10 @@ class RKDPolicy(_Sampling):
         more than CONVERGED_M / CONVERGED_DEG. If none converges, the nearest draw's poses are
         tracked from where the arm is (``_from_start``), kept if that ends nearer. extras['draws']
         says how many draws it took, extras['from_start'] whether the plan was tracked."""
-        goal = torch.as_tensor(conditions(request)['goal_pose'])
-        plan, draws = nearest_of_draws(lambda: self._plan_once(request, goal), _goal_miss,
-                                       (CONVERGED_M, CONVERGED_DEG), self.draws)
+        goal, tolerance = torch.as_tensor(conditions(request)['goal_pose']), (CONVERGED_M, CONVERGED_DEG)
+        plan, draws = nearest_of_draws(lambda: self._plan_once(request, goal), _goal_miss, tolerance, self.draws)
         from_start = False
-        if self.draws > 1 and not _converged(plan):
+        if self.draws > 1 and not within(_goal_miss(plan), tolerance):
             again = self._from_start(request, plan, goal)
             from_start = _goal_miss(again) < _goal_miss(plan)
             plan = again if from_start else plan
@@ -150,10 +149,6 @@ def _refined_plan(joints: torch.Tensor, poses: torch.Tensor, goal: torch.Tensor,
 def _goal_miss(plan: PlanResult) -> tuple[float, float]:
     return plan.extras['goal_error_m'], plan.extras['goal_error_deg']
 
-
-def _converged(plan: PlanResult) -> bool:
-    miss = _goal_miss(plan)
-    return miss[0] <= CONVERGED_M and miss[1] <= CONVERGED_DEG
 
 
 class JointDiffusionPolicy(_Sampling):
