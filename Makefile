@@ -3,13 +3,13 @@
 PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV   := .venv
 PY     := $(VENV)/bin/python
-PKGS   := hdp_motion hdp_msgs_py hdp_planner hdp_controller hdp_sim_bridge hdp_eval hdp_bringup
+PKGS   := hdp_motion hdp_msgs_py hdp_ros hdp_data hdp_learning hdp_tools hdp_planner hdp_controller hdp_sim_bridge hdp_eval hdp_bringup
 STAMP  := $(VENV)/.stamp
 # ROS 2 interface packages the registry has no wheels for, built with rosidl.
 ROS_IFACES := src/hdp_msgs_py/ros_interfaces
 IFACE_STAMP := $(VENV)/.ros_interfaces
 
-.PHONY: setup test demo clean distclean FORCE
+.PHONY: setup test test-fast test-sim test-dds demo clean distclean FORCE
 
 # The top-level Python packages present now. An editable install maps only the
 # packages that existed when it ran, so a package appearing (or vanishing)
@@ -46,6 +46,17 @@ $(IFACE_STAMP): $(STAMP) $(shell find $(ROS_IFACES) -type f)
 
 test: setup
 	$(PY) -m pytest -q tests src
+
+# One tier each (pytest.ini, ARCHITECTURE.md "How it is tested"): unit is the edit loop (under
+# 3 minutes on two cores), sim the in-process simulator and training, dds processes and DDS.
+test-fast: setup
+	$(PY) -m pytest -q -m unit tests src
+
+test-sim: setup
+	$(PY) -m pytest -q -m sim tests src
+
+test-dds: setup
+	$(PY) -m pytest -q -m dds tests src
 
 # The whole graph on one episode: demo_out/ gets a GIF, a trajectory plot and summary.json.
 demo: setup

@@ -11,7 +11,8 @@ import numpy as np
 import rclpy
 
 from hdp_motion import panda
-from hdp_msgs_py import conversions, ros, topics
+from hdp_msgs_py import conversions, topics
+from hdp_ros import ros
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
 
 

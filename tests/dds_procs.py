@@ -21,7 +21,8 @@ import time
 import numpy as np
 import rclpy
 
-from hdp_msgs_py import conversions, ros
+from hdp_msgs_py import conversions
+from hdp_ros import ros
 from hdp_msgs_py.msg import String, TFMessage, TransformStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter

@@ -7,9 +7,13 @@ import json
 import subprocess
 import sys
 
-from hdp_msgs_py.transport_bench import MODES, STREAMS
+import pytest
 
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main', 'bench', 'transport']
+from hdp_tools.transport_bench import MODES, STREAMS
+
+pytestmark = pytest.mark.dds
+
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main', 'bench', 'transport']
 
 
 def test_every_mode_receives_all_four_streams(ros_domain):

@@ -1,4 +1,4 @@
-"""hdp_msgs_py.checkpoints: the one set of rules both packages' checkpoints are saved and loaded by."""
+"""hdp_learning.checkpoints: the one set of rules both packages' checkpoints are saved and loaded by."""
 
 import os
 import random
@@ -11,10 +11,12 @@ import torch
 
 from hdp_controller import checkpoint as rkd_checkpoint
 from hdp_controller.policy import default_checkpoint as rkd_default
-from hdp_msgs_py import checkpoints
-from hdp_msgs_py.checkpoints import CheckpointError
+from hdp_learning import checkpoints
+from hdp_learning.checkpoints import CheckpointError
 from hdp_planner import checkpoint as agent_checkpoint
 from hdp_planner.planner_logic import default_checkpoint as agent_default
+
+pytestmark = pytest.mark.unit
 
 MODELS = Path(__file__).resolve().parents[1] / 'models'
 KIND, VERSION = 'test_kind', 3
@@ -151,6 +153,6 @@ def test_each_package_refuses_the_other_ones_checkpoint():
 
 
 def test_importing_the_checkpoint_rules_loads_no_torch():
-    probe = 'import sys, hdp_msgs_py.checkpoints; print("torch" in sys.modules)'
+    probe = 'import sys, hdp_learning.checkpoints; print("torch" in sys.modules)'
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout.strip() == 'False', result.stderr

@@ -19,7 +19,9 @@ import yaml
 from hdp_msgs_py.message_yaml import message_from_yaml, message_to_yaml
 from test_dds_processes import finish, start
 
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+pytestmark = pytest.mark.dds
+
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 
 
 def hdp(domain: int, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
@@ -216,7 +218,7 @@ def test_planner_node_executable_acknowledges_an_instruction(ros_domain):
 def _damaged_checkpoint(tmp_path) -> Path:
     """The released RK-Diffuser cut after 5 kB: a zip whose header is whole (torch's reader fails
     with an OSError, not an unpickling error)."""
-    from hdp_msgs_py import checkpoints
+    from hdp_learning import checkpoints
     path = tmp_path / 'cut.pt'
     path.write_bytes(checkpoints.default_path('rk_diffuser.pt').read_bytes()[:5000])
     return path

@@ -7,12 +7,14 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from hdp_msgs_py.episodes import list_episodes, read_episode
+from hdp_data.episodes import list_episodes, read_episode
 from hdp_sim_bridge.collect import record_episode
 from hdp_sim_bridge.tasks import TASKS, make_task
 from hdp_sim_bridge.world import PandaWorld
 
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+pytestmark = pytest.mark.sim
+
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 
 
 @pytest.fixture(scope='module')

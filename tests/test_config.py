@@ -1,4 +1,4 @@
-"""hdp_msgs_py.config: the one --config mechanism of both trainers (sections of dataclasses,
+"""hdp_learning.config: the one --config mechanism of both trainers (sections of dataclasses,
 defaults < file < flags, unknown sections and keys refused in one line naming the known ones)."""
 
 import dataclasses
@@ -8,7 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from hdp_msgs_py.config import ConfigError, as_dict, load_sections
+from hdp_learning.config import ConfigError, as_dict, load_sections
+
+pytestmark = pytest.mark.unit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,7 +91,7 @@ def test_overrides_are_checked_like_the_file(tmp_path):
 
 
 def test_the_loader_and_the_launcher_helpers_import_no_torch():
-    probe = 'import sys, hdp_msgs_py.config, hdp_msgs_py.distributed; print("torch" in sys.modules)'
+    probe = 'import sys, hdp_learning.config, hdp_learning.distributed; print("torch" in sys.modules)'
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=60)
     assert result.stdout.strip() == 'False', result.stderr
 
@@ -110,7 +112,7 @@ def test_the_low_level_configs_load_as_before():
 def test_low_level_cli_refuses_an_unknown_key_in_one_line(tmp_path):
     config = tmp_path / 'rkd.yaml'
     config.write_text('train: {steps: 2, batch: 4}\n')
-    refused = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'train', 'low-level', '--data',
+    refused = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', 'train', 'low-level', '--data',
                               str(tmp_path), '--out', str(tmp_path / 'r.pt'), '--config', str(config)],
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode != 0

@@ -23,6 +23,8 @@ from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.msg import (Header, JointState, JointTrajectory, Point, Pose, PoseStamped, Quaternion, TFMessage,
                              Time)
 
+pytestmark = pytest.mark.unit
+
 torch.set_num_threads(1)
 
 @functools.cache
@@ -63,7 +65,7 @@ def joint_state_msg(q, qd=None, fingers=(0.04, 0.04), stamp_sec: int = 0):
 # --- validation ---------------------------------------------------------------------------
 
 def test_a_valid_nbp_becomes_position_and_unit_quaternion():
-    from hdp_controller.controller_logic import validate_nbp
+    from hdp_controller.inputs import validate_nbp
     goal = reachable_goal()
     pose = validate_nbp(nbp(goal[:3], goal[3:]))
     assert pose.shape == (7,) and np.allclose(pose, goal, atol=1e-9)
@@ -81,13 +83,13 @@ def test_a_valid_nbp_becomes_position_and_unit_quaternion():
     ((0.4, 0.0, 1.0), (1, 0, 0, 0), 'panda_link0', "is not 'world'"),
 ])
 def test_invalid_nbps_are_refused_with_the_reason(xyz, quat, frame, reason):
-    from hdp_controller.controller_logic import SegmentRefused, validate_nbp
+    from hdp_controller.inputs import SegmentRefused, validate_nbp
     with pytest.raises(SegmentRefused, match=reason):
         validate_nbp(nbp(xyz, quat, frame_id=frame))
 
 
 def test_gripper_goals_are_validated():
-    from hdp_controller.controller_logic import gripper_goal
+    from hdp_controller.inputs import gripper_goal
     assert gripper_goal(gripper_goal_msg(True)) is True
     assert gripper_goal(gripper_goal_msg(False)) is False
     for bad in (gripper_goal_msg(True, width=0.2), gripper_goal_msg(True, width=math.nan),
@@ -97,8 +99,23 @@ def test_gripper_goals_are_validated():
             gripper_goal(bad)
 
 
+def test_the_gripper_is_read_from_its_fingers_and_commanded_as_a_finger_trajectory():
+    """panda.reads_open: open when (nearly) fully open, so fingers closed on a handle read closed.
+    conversions.finger_trajectory: both fingers to the open or shut position in 0.5 s, start now."""
+    assert panda.reads_open(panda.GRIPPER_OPEN_WIDTH) and panda.reads_open(panda.GRIPPER_OPEN_WIDTH - 0.004)
+    assert not panda.reads_open(0.06) and not panda.reads_open(0.0)
+    opening = conversions.finger_trajectory(True)
+    names, positions, times, _ = conversions.parse_joint_trajectory(opening)
+    assert names == list(panda.FINGER_JOINTS) and positions.tolist() == [[panda.FINGER_MAX] * 2]
+    assert times.tolist() == [0.5] and opening.header.stamp == Time()            # the zero stamp: start now
+    shut = conversions.finger_trajectory(False, ('fr3_finger_joint1', 'fr3_finger_joint2'), stamp=Time(sec=2))
+    assert list(shut.joint_names) == ['fr3_finger_joint1', 'fr3_finger_joint2'] and shut.header.stamp == Time(sec=2)
+    assert conversions.parse_joint_trajectory(shut)[1].tolist() == [[0.0, 0.0]]
+    assert conversions.time_to_ns(Time(sec=3, nanosec=7)) == 3_000_000_007
+
+
 def test_arm_state_reads_joints_by_name_in_any_order():
-    from hdp_controller.controller_logic import arm_state
+    from hdp_controller.inputs import arm_state
     q = panda.HOME + 0.1
     msg = joint_state_msg(q, qd=np.arange(7) * 0.01, fingers=(0.01, 0.02))
     msg.name, msg.position, msg.velocity = msg.name[::-1], msg.position[::-1], msg.velocity[::-1]
@@ -128,7 +145,8 @@ class FakePolicy:
 
 
 def _request(q=panda.HOME):
-    from hdp_controller.controller_logic import ArmState, segment_request
+    from hdp_controller.inputs import ArmState
+    from hdp_controller.segment_planning import segment_request
     return segment_request(ArmState(np.asarray(q, float), np.zeros(7), 0.08), True, reachable_goal(), False,
                            np.zeros((0, 3), np.float32))
 
@@ -140,7 +158,7 @@ def test_segment_request_starts_at_the_forward_kinematics_of_the_joints():
 
 
 def test_joint_trajectories_stay_inside_position_and_velocity_limits():
-    from hdp_controller.controller_logic import plan_segment
+    from hdp_controller.segment_planning import plan_segment
     rng = np.random.default_rng(0)
     for trial in range(20):
         scale = rng.uniform(0.1, 1.0)
@@ -157,7 +175,8 @@ def test_joint_trajectories_stay_inside_position_and_velocity_limits():
 
 
 def test_out_of_limit_or_failed_plans_are_refused_never_sent():
-    from hdp_controller.controller_logic import SegmentRefused, plan_segment
+    from hdp_controller.inputs import SegmentRefused
+    from hdp_controller.segment_planning import plan_segment
     beyond = np.vstack([panda.HOME, panda.UPPER + np.array([0, 0, 0, 0, 0, 0.01, 0])])
     with pytest.raises(SegmentRefused, match='outside the joint position limits'):
         plan_segment(FakePolicy(beyond), _request(), panda.ARM_JOINTS, 0.5)
@@ -168,7 +187,8 @@ def test_out_of_limit_or_failed_plans_are_refused_never_sent():
 
 
 def test_a_plan_that_ends_away_from_its_nbp_is_refused_with_the_distance():
-    from hdp_controller.controller_logic import SegmentRefused, plan_segment
+    from hdp_controller.inputs import SegmentRefused
+    from hdp_controller.segment_planning import plan_segment
     far = np.vstack([panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])])   # swings 20+ cm aside
     with pytest.raises(SegmentRefused, match=r'fake plan ends 0\.\d+ m and [\d.]+ deg from the NBP '
                                               r'\(tolerance 0\.100 m, 15\.0 deg\)'):
@@ -178,8 +198,58 @@ def test_a_plan_that_ends_away_from_its_nbp_is_refused_with_the_distance():
         plan_segment(FakePolicy(turned), _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0))
     half_turn = REACHING_Q - np.array([0, 0, 0, 0, 0, 0, math.pi])     # the same grasp: fingers swapped
     plan_segment(FakePolicy([half_turn]), _request(), panda.ARM_JOINTS, 0.5, (0.01, 1.0))
-    exact, _ = plan_segment(FakePolicy([REACHING_Q]), _request(), panda.ARM_JOINTS, 0.5, (0.001, 0.1))
+    exact, report = plan_segment(FakePolicy([REACHING_Q]), _request(), panda.ARM_JOINTS, 0.5, (0.001, 0.1))
     assert np.allclose(exact.points[-1].positions, REACHING_Q)
+    assert report.method == 'fake' and report.draws == 1 and report.failure is None and not report.ik_error
+    assert report.reach_error == pytest.approx((0.0, 0.0), abs=1e-6) and report.seconds >= 0.0
+
+
+def test_check_reach_refuses_a_miss_beyond_either_tolerance_and_none_checks_nothing():
+    from hdp_controller.inputs import SegmentRefused
+    from hdp_controller.segment_planning import check_reach
+    check_reach('fake', (0.1, 15.0), (0.1, 15.0))                  # on the tolerance: kept
+    check_reach('fake', (5.0, 180.0), None)                        # nothing to check
+    with pytest.raises(SegmentRefused, match=r'fake plan ends 0\.101 m and 1\.0 deg from the NBP '
+                                              r'\(tolerance 0\.100 m, 15\.0 deg\): the NBP is not reachable as given'):
+        check_reach('fake', (0.101, 1.0), (0.1, 15.0))
+    with pytest.raises(SegmentRefused, match=r'0\.010 m and 15\.1 deg'):
+        check_reach('fake', (0.01, 15.1), (0.1, 15.0))
+
+
+def test_a_refused_plan_carries_how_it_was_planned():
+    """SegmentRefused.report: the draws and how far the kept plan ended when the reach check (or
+    the timing) refuses it; the policy's failure and ik_error when it found no plan."""
+    from hdp_controller.inputs import SegmentRefused
+    from hdp_controller.low_level import PlanResult
+    from hdp_controller.segment_planning import PlanReport, plan_segment, reach_error
+    far = np.vstack([panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])])
+    policy = DrawingPolicy([far, far, far])
+    with pytest.raises(SegmentRefused, match='plan ends') as refused:
+        plan_segment(policy, _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0), attempts=3)
+    report = refused.value.report
+    assert isinstance(report, PlanReport) and report.method == 'fake' and report.draws == 3 == len(policy.requests)
+    assert report.reach_error == pytest.approx(reach_error(far[-1], reachable_goal()))
+    assert report.reach_error[0] > 0.1 and report.failure is None and not report.ik_error
+    assert str(refused.value).startswith(f'fake plan ends {report.reach_error[0]:.3f} m')
+
+    beyond = np.vstack([panda.HOME, panda.UPPER + np.array([0, 0, 0, 0, 0, 0.01, 0])])
+    with pytest.raises(SegmentRefused, match='outside the joint position limits') as refused:
+        plan_segment(FakePolicy(beyond), _request(), panda.ARM_JOINTS, 0.5)
+    assert refused.value.report.draws == 1 and refused.value.report.reach_error is not None
+
+    with pytest.raises(SegmentRefused, match=r'fake found no trajectory \(no_path\)') as refused:
+        plan_segment(FakePolicy(failure='no_path'), _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0), attempts=3)
+    report = refused.value.report
+    assert (report.method, report.draws, report.failure, report.ik_error) == ('fake', 1, 'no_path', False)
+    assert report.reach_error is None
+
+    class NoIK(FakePolicy):
+        def plan(self, request, scene=None):
+            return PlanResult(None, failure='ik_error', ik_error=True)
+    with pytest.raises(SegmentRefused, match=r'fake found no trajectory \(ik_error\)') as refused:
+        plan_segment(NoIK(), _request(), panda.ARM_JOINTS, 0.5)
+    assert refused.value.report.failure == 'ik_error' and refused.value.report.ik_error is True
+    assert SegmentRefused('why').report is None                    # refused before planning: no report
 
 
 class DrawingPolicy(FakePolicy):
@@ -195,13 +265,15 @@ class DrawingPolicy(FakePolicy):
 
 
 def test_a_plan_ending_away_from_its_nbp_is_drawn_again_up_to_the_attempts():
-    from hdp_controller.controller_logic import SegmentRefused, plan_segment, plan_within_reach
+    from hdp_controller.inputs import SegmentRefused
+    from hdp_controller.segment_planning import plan_segment, plan_within_reach
     far = np.vstack([panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])])
     farther = np.vstack([panda.HOME, panda.HOME + np.array([0.9, 0, 0, 0, 0, 0, 0])])
     reaching = np.vstack([panda.HOME, REACHING_Q])
     policy = DrawingPolicy([far, reaching, far])
-    msg, _ = plan_segment(policy, _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0), attempts=3)
+    msg, report = plan_segment(policy, _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0), attempts=3)
     assert np.allclose(msg.points[-1].positions, REACHING_Q) and len(policy.requests) == 2   # stops when within
+    assert report.draws == 2 and report.reach_error[0] < 0.001
     with pytest.raises(SegmentRefused, match='plan ends'):
         plan_segment(DrawingPolicy([far, reaching]), _request(), panda.ARM_JOINTS, 0.5, (0.1, 15.0), attempts=1)
     plan, draws = plan_within_reach(DrawingPolicy([farther, far, farther]), _request(), (0.1, 15.0), attempts=3)
@@ -215,7 +287,7 @@ def test_a_plan_ending_away_from_its_nbp_is_drawn_again_up_to_the_attempts():
 def test_planner_method_reaches_the_goal_pose_within_limits():
     from hdp_motion import kinematics
     from hdp_controller.baselines import PlannerPolicy
-    from hdp_controller.controller_logic import plan_segment
+    from hdp_controller.segment_planning import plan_segment
     msg, _ = plan_segment(PlannerPolicy(), _request(), panda.ARM_JOINTS, 0.5)
     _, positions, _, _ = conversions.parse_joint_trajectory(msg)
     assert panda.within_limits(positions)
@@ -226,12 +298,12 @@ def test_planner_method_reaches_the_goal_pose_within_limits():
 # --- segment completion ---------------------------------------------------------------------
 
 def _state(q, qd=None, width=0.08):
-    from hdp_controller.controller_logic import ArmState
+    from hdp_controller.inputs import ArmState
     return ArmState(np.asarray(q, float), np.zeros(7) if qd is None else np.asarray(qd, float), width)
 
 
 def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_settle():
-    from hdp_controller.controller_logic import SegmentExecution
+    from hdp_controller.execution import SegmentExecution
     goal = panda.HOME + 0.2
     run = SegmentExecution(goal, duration_s=2.0, start_s=10.0, timeout_s=5.0, gripper_open=False)
     assert run.update(11.0, _state(goal)) == (False, None)                    # before the trajectory's end
@@ -245,7 +317,7 @@ def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_sett
 
 
 def test_segment_timeouts_and_no_gripper_action():
-    from hdp_controller.controller_logic import BLOCKED_STILL_S, SegmentExecution
+    from hdp_controller.execution import BLOCKED_STILL_S, SegmentExecution
     goal = panda.HOME + 0.2
     moving = np.full(7, 0.05)
     stuck = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
@@ -265,7 +337,7 @@ def test_segment_timeouts_and_no_gripper_action():
     assert blocked.update(1.2 + BLOCKED_STILL_S, _state(goal + 0.03)).result == 'done'
     assert blocked.short_by == pytest.approx(0.03)
     # Pressed on a stop, the velocities jitter; no progress for BLOCKED_STILL_S is what counts.
-    from hdp_controller.controller_logic import BLOCKED_BAND
+    from hdp_controller.execution import BLOCKED_BAND
     pressed = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     jitter = [(goal + 0.03 + sign * BLOCKED_BAND / 3, np.full(7, 0.08 * sign)) for sign in (1, -1) * 5]
     times = 1.2 + np.arange(len(jitter)) * BLOCKED_STILL_S / 8
@@ -286,22 +358,29 @@ def test_segment_timeouts_and_no_gripper_action():
 
 # --- the controller's state between messages ---------------------------------------------------
 
-def _controller(policy=None, needs_points=False):
-    from hdp_controller.controller_logic import SegmentController
-    controller = SegmentController(policy or FakePolicy([REACHING_Q]), needs_points, 0.5, 5.0)
+def _controller(policy=None, needs_points=False, **kwargs):
+    from hdp_controller.segment_controller import SegmentController
+    controller = SegmentController(policy or FakePolicy([REACHING_Q]), needs_points, 0.5, 5.0, **kwargs)
     controller.on_joint_state(joint_state_msg(panda.HOME))
     return controller
 
 
 def _kinds(outputs):
-    return [kind for kind, _ in outputs]
+    """Each record's kind: 'arm' (ArmCommand), 'gripper' (FingerCommand), 'result' (SegmentResult),
+    or a StatusLine's 'info' / 'error'; any other record is an error."""
+    from hdp_controller.segment_controller import ArmCommand, FingerCommand, SegmentResult
+    from hdp_msgs_py.outcome import StatusLine
+    kinds = {ArmCommand: 'arm', FingerCommand: 'gripper', SegmentResult: 'result'}
+    return [('error' if out.error else 'info') if type(out) is StatusLine else kinds[type(out)] for out in outputs]
 
 
 def test_controller_refuses_a_nan_pose_with_a_result_and_no_trajectory():
     controller = _controller()
     out = controller.on_nbp(nbp((math.nan, 0, 1), (1, 0, 0, 0), stamp_sec=7), now_s=0.0)
     assert _kinds(out) == ['error', 'result']
-    assert out[1].msg.stamp.sec == 7 and out[1].msg.frame_id.startswith('failed: invalid pose')
+    assert out[1].header.stamp.sec == 7 and out[1].header.frame_id.startswith('failed: invalid pose')
+    assert not out[1].done and out[1].plan is None                 # refused before any planning
+    assert out[0].text.startswith('refused segment 7.000: invalid pose')
     assert controller.step(1.0) == [] and controller.pending is None
 
 
@@ -312,17 +391,23 @@ def test_controller_pairs_the_gripper_goal_by_stamp_and_reports_done():
     assert controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=0.0) == []
     out = controller.step(0.05)
     assert _kinds(out) == ['arm', 'info']
-    end = np.asarray(out[0].msg.points[-1].positions)
+    assert out[0].stamp == Time(sec=3) and out[0].plan.method == 'fake' and out[0].plan.draws == 1
+    assert out[1].text.startswith('segment 3.000: fake to (') and out[1].text.endswith(', then close the gripper')
+    end = np.asarray(out[0].trajectory.points[-1].positions)
     controller.on_joint_state(joint_state_msg(end))
     out = controller.step(30.0)
-    assert _kinds(out) == ['gripper'] and conversions.parse_joint_trajectory(out[0].msg)[1].tolist() == [[0.0, 0.0]]
+    assert _kinds(out) == ['gripper']
+    names, fingers, _, _ = conversions.parse_joint_trajectory(out[0].trajectory)
+    assert names == list(panda.FINGER_JOINTS) and fingers.tolist() == [[0.0, 0.0]]
     controller.on_joint_state(joint_state_msg(end, fingers=(0.0, 0.0)))
     out = controller.step(30.2)
-    assert _kinds(out) == ['info', 'result'] and out[1].msg.frame_id == 'done' and out[1].msg.stamp.sec == 3
+    assert _kinds(out) == ['info', 'result'] and out[1].header.frame_id == 'done' and out[1].header.stamp.sec == 3
+    assert out[1].done and out[0].text == 'segment 3.000: done'
     # A simulator reset opens the hand behind the controller's back: the next segment reads the fingers.
     controller.on_joint_state(joint_state_msg(end, fingers=(0.04, 0.04)))
     controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=5), now_s=31.0)
-    assert 'gripper stays open' in controller.step(32.0)[0].msg
+    line = controller.step(32.0)[0]
+    assert 'gripper stays open' in line.text and not line.error
 
 
 def test_a_robot_that_stops_answering_fails_the_running_segment_naming_why():
@@ -333,19 +418,19 @@ def test_a_robot_that_stops_answering_fails_the_running_segment_naming_why():
     controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=0.0)
     assert _kinds(controller.step(0.05)) == ['arm', 'info']
     out = controller.robot_gone('no /joint_states for 5.2 s')
-    assert _kinds(out) == ['error', 'result'] and out[1].msg.stamp.sec == 3
-    assert out[0].msg == 'segment 3.000 failed: no /joint_states for 5.2 s'
-    assert out[1].msg.frame_id == 'failed: no /joint_states for 5.2 s' and controller.running is None
+    assert _kinds(out) == ['error', 'result'] and out[1].header.stamp.sec == 3
+    assert out[0].text == 'segment 3.000 failed: no /joint_states for 5.2 s'
+    assert out[1].header.frame_id == 'failed: no /joint_states for 5.2 s' and controller.running is None
 
 
 def test_controller_without_a_gripper_goal_keeps_the_gripper_after_a_short_wait():
-    from hdp_controller.controller_logic import PAIRING_WAIT_S
+    from hdp_controller.segment_controller import PAIRING_WAIT_S
     controller = _controller()
     goal = reachable_goal()
     controller.on_nbp(nbp(goal[:3], goal[3:]), now_s=0.0)
     assert controller.step(PAIRING_WAIT_S / 2) == []
     out = controller.step(PAIRING_WAIT_S + 0.01)
-    assert _kinds(out) == ['info', 'arm', 'info'] and 'gripper stays open' in out[0].msg
+    assert _kinds(out) == ['info', 'arm', 'info'] and 'gripper stays open' in out[0].text
     assert controller.running[1].gripper_open is None
 
 
@@ -358,48 +443,50 @@ def test_a_newer_nbp_supersedes_the_running_segment_and_a_repeat_is_ignored():
     controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=10.0)
     assert _kinds(controller.step(10.05)) == ['arm', 'info']
     repeat = controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=10.1)
-    assert _kinds(repeat) == ['error'] and 'repeated' in repeat[0].msg and controller.running is not None
+    assert _kinds(repeat) == ['error'] and 'repeated' in repeat[0].text and controller.running is not None
     newer = controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=1), now_s=0.2)    # after a reset
-    assert _kinds(newer) == ['error', 'result'] and newer[1].msg.stamp.sec == 3
-    assert newer[1].msg.frame_id == 'failed: superseded by segment 1.000'
+    assert _kinds(newer) == ['error', 'result'] and newer[1].header.stamp.sec == 3
+    assert newer[1].header.frame_id == 'failed: superseded by segment 1.000'
     assert controller.running is None
     out = controller.step(0.8)
-    assert _kinds(out) == ['info', 'arm', 'info'] and 'segment 1.000' in out[2].msg
+    assert _kinds(out) == ['info', 'arm', 'info'] and 'segment 1.000' in out[2].text
     # a pending segment is superseded the same way, its gripper goal forgotten
     controller.on_gripper_goal(gripper_goal_msg(True, stamp_sec=6))
     controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=6), now_s=1.0)
     invalid = controller.on_nbp(nbp((math.nan, 0, 1), (1, 0, 0, 0), stamp_sec=7), now_s=1.01)
-    assert [m.msg.frame_id.split(':')[0] for m in invalid if m.kind == 'result'] == ['failed', 'failed']
+    assert _kinds(invalid) == ['error', 'result', 'error', 'result']
+    assert [m.header.frame_id.split(':')[0] for m in invalid[1::2]] == ['failed', 'failed']
+    assert [m.header.stamp.sec for m in invalid[1::2]] == [6, 7]
     assert controller.pending is None and controller.gripper_goals == {}
 
 
 def test_controller_refuses_without_joint_states_or_camera():
-    from hdp_controller.controller_logic import STARTUP_WAIT_S, SegmentController
+    from hdp_controller.segment_controller import STARTUP_WAIT_S, SegmentController
     goal = reachable_goal()
     blind = SegmentController(FakePolicy([REACHING_Q]), False, 0.5, 5.0)
     blind.on_joint_state(JointState(name=list(panda.FINGER_JOINTS), position=[0.04, 0.04]))   # fingers only
     blind.on_gripper_goal(gripper_goal_msg(True))
     blind.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
     assert blind.step(0.1) == []                     # the first joint state may still be on its way
-    reason = blind.step(STARTUP_WAIT_S + 0.01)[1].msg.frame_id
+    reason = blind.step(STARTUP_WAIT_S + 0.01)[1].header.frame_id
     assert reason.startswith('failed: no usable /joint_states received yet (joint state lacks')
     assert 'panda_joint1' in reason
     learned = _controller(needs_points=True)
     learned.on_gripper_goal(gripper_goal_msg(True))
     learned.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
     assert learned.step(0.1) == []                   # the first frame may still be on its way
-    assert 'no front camera depth' in learned.step(STARTUP_WAIT_S + 0.01)[1].msg.frame_id
+    assert 'no front camera depth' in learned.step(STARTUP_WAIT_S + 0.01)[1].header.frame_id
 
 
 def test_an_nbp_that_beats_the_first_joint_state_waits_for_it():
-    from hdp_controller.controller_logic import SegmentController
+    from hdp_controller.segment_controller import SegmentController
     goal = reachable_goal()
     controller = SegmentController(FakePolicy([REACHING_Q]), False, 0.5, 5.0)
     controller.on_gripper_goal(gripper_goal_msg(True))
     controller.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
     assert controller.step(1.0) == []
     controller.on_joint_state(joint_state_msg(panda.HOME))
-    assert [out.kind for out in controller.step(1.1)] == ['arm', 'info']
+    assert _kinds(controller.step(1.1)) == ['arm', 'info']
 
 
 def test_a_depth_image_of_the_clock_before_a_reset_is_dropped():
@@ -428,10 +515,81 @@ def test_controller_builds_front_camera_points_for_learned_methods():
     controller.on_gripper_goal(gripper_goal_msg(True))
     controller.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
     assert controller.step(0.1) == []                # an NBP that beats the first frame waits for it
-    controller.depth = conversions.numpy_to_image(depth, '16UC1', Header(frame_id=camera.frame_id))
-    controller.info = camera.camera_info(Time())
+    controller.on_depth(conversions.numpy_to_image(depth, '16UC1', Header(frame_id=camera.frame_id)))
+    controller.on_camera_info(camera.camera_info(Time()))
     assert 'arm' in _kinds(controller.step(0.2))
     assert policy.requests[0].points.shape == (1024, 3)
+
+
+def test_camera_info_comes_through_on_camera_info_and_a_learned_method_waits_for_it():
+    from hdp_controller.segment_controller import STARTUP_WAIT_S
+    from hdp_sim_bridge.cameras import default_cameras
+    camera = default_cameras(32, 24)['front']
+    depth = conversions.numpy_to_image(np.full((24, 32), 1500, np.uint16), '16UC1', Header(frame_id=camera.frame_id))
+    goal = reachable_goal()
+    policy = FakePolicy([REACHING_Q])
+    controller = _controller(policy, needs_points=True)
+    controller.on_tf_static(TFMessage(transforms=[camera.transform_stamped()]))
+    controller.on_depth(depth)
+    controller.on_gripper_goal(gripper_goal_msg(True))
+    controller.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
+    assert controller.step(0.1) == [] and policy.requests == []        # depth, but no camera_info yet
+    info = camera.camera_info(Time())
+    controller.on_camera_info(info)
+    assert controller.info is info
+    assert _kinds(controller.step(0.2)) == ['arm', 'info'] and policy.requests[0].points.shape == (1024, 3)
+    # Without camera_info the segment is refused after the start-up wait, never planned blind.
+    blind = _controller(FakePolicy([REACHING_Q]), needs_points=True)
+    blind.on_tf_static(TFMessage(transforms=[camera.transform_stamped()]))
+    blind.on_depth(depth)
+    blind.on_gripper_goal(gripper_goal_msg(True))
+    blind.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
+    out = blind.step(STARTUP_WAIT_S + 0.01)
+    assert _kinds(out) == ['error', 'result'] and blind.policy.requests == []
+    assert out[1].header.frame_id == 'failed: no front camera depth and camera_info received yet'
+
+
+class ScenePolicy(FakePolicy):
+    """A FakePolicy that also records the scene each plan() was given."""
+
+    def __init__(self, joints):
+        super().__init__(joints)
+        self.scenes = []
+
+    def plan(self, request, scene=None):
+        self.scenes.append(scene)
+        return super().plan(request, scene)
+
+
+def test_each_segment_plans_in_the_scene_the_callable_gives():
+    """scene=: called once per segment (the evaluations' simulator scene); None leaves the policy
+    its own, as on a robot."""
+    scenes = iter(['scene 1', 'scene 2'])
+    policy = ScenePolicy([REACHING_Q])
+    controller = _controller(policy, scene=lambda: next(scenes))
+    goal = reachable_goal()
+    for stamp_sec in (1, 2):          # the second NBP supersedes the first segment, then plans
+        controller.on_gripper_goal(gripper_goal_msg(True, stamp_sec=stamp_sec))
+        controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=stamp_sec), now_s=float(stamp_sec))
+        assert _kinds(controller.step(stamp_sec + 0.05)) == ['arm', 'info']
+    assert policy.scenes == ['scene 1', 'scene 2']
+    default = ScenePolicy([REACHING_Q])
+    controller = _controller(default)
+    controller.on_gripper_goal(gripper_goal_msg(True))
+    controller.on_nbp(nbp(goal[:3], goal[3:]), 0.0)
+    assert _kinds(controller.step(0.05)) == ['arm', 'info'] and default.scenes == [None]
+
+
+def test_a_segment_planning_refuses_fails_with_its_plan_report():
+    controller = _controller(FakePolicy(failure='no_path'))
+    goal = reachable_goal()
+    controller.on_gripper_goal(gripper_goal_msg(True, stamp_sec=4))
+    controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=4), 0.0)
+    out = controller.step(0.05)
+    assert _kinds(out) == ['error', 'result'] and controller.running is None
+    assert out[0].text == 'refused segment 4.000: fake found no trajectory (no_path)'
+    assert out[1].header.frame_id == 'failed: fake found no trajectory (no_path)' and not out[1].done
+    assert out[1].plan.method == 'fake' and out[1].plan.failure == 'no_path' and out[1].plan.draws == 1
 
 
 # --- controller_node as a process next to sim_bridge_node -----------------------------------------
@@ -477,7 +635,7 @@ def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, inter
 def probe() -> None:
     """Drive a running controller_node + sim_bridge_node; print what happened as one JSON line."""
     from hdp_motion import kinematics
-    from hdp_msgs_py import ros
+    from hdp_ros import ros
     from hdp_msgs_py.msg import JointTrajectory, String
     ros.init(args=sys.argv)
     node = ros.Node('controller_probe')
@@ -588,11 +746,12 @@ def test_the_arm_action_fails_a_segment_on_refusal_or_abort_and_cancels_one_that
     from control_msgs.action import FollowJointTrajectory
 
     from hdp_controller import action_clients
-    from hdp_controller.controller_logic import GOAL_TOLERANCE
+    from hdp_controller.execution import GOAL_TOLERANCE
+    from hdp_msgs_py.outcome import StatusLine
     monkeypatch.setattr(action_clients, 'ActionClient', _FakeActionClient)
     failed, sent = [], []
     arm = action_clients.ArmAction(None, topics.ARM_ACTION, panda.ARM_JOINTS, sent.append,
-                                   lambda stamp, why: failed.append((stamp.sec, why)) or [('error', why)])
+                                   lambda stamp, why: failed.append((stamp.sec, why)) or [StatusLine(why, True)])
     client = _FakeActionClient.made[-1]
     assert client.name == topics.ARM_ACTION
 
@@ -602,6 +761,7 @@ def test_the_arm_action_fails_a_segment_on_refusal_or_abort_and_cancels_one_that
     assert [t.name for t in goal.goal_tolerance] == list(panda.ARM_JOINTS)
     future.set_result(_FakeGoalHandle(accepted=False))
     assert failed[-1] == (1, 'the arm controller rejected the trajectory')
+    assert sent[-1] == [StatusLine('the arm controller rejected the trajectory', error=True)]   # to the node
 
     arm.send(Time(sec=2), JointTrajectory())                       # accepted, then aborted
     handle = _FakeGoalHandle()

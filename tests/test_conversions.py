@@ -18,6 +18,8 @@ from hdp_msgs_py.msg import (USING_RCLPY, Duration, Header, Image, JointTrajecto
                              Pose, Quaternion, Time, Transform, TransformStamped, Vector3)
 from hdp_msgs_py.msg_spec import PRIMITIVES, STRING
 
+pytestmark = pytest.mark.unit
+
 
 def wire_round_trip(msg):
     """``msg`` serialised and deserialised again."""

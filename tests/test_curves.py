@@ -7,7 +7,9 @@ import math
 import pytest
 
 from hdp_eval.curves_plot import panels, plot_curves
-from hdp_msgs_py.curves import CurveLog, curves_path, read_curves
+from hdp_learning.curves import CurveLog, curves_path, read_curves
+
+pytestmark = pytest.mark.unit
 
 
 def test_rows_columns_and_a_continued_run(tmp_path):

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.dds
+
 PROCS = Path(__file__).with_name('dds_procs.py')
 
 

@@ -18,9 +18,11 @@ from PIL import Image
 from hdp_bringup.demo import cli, cpu, episode_log, figures, media
 from hdp_bringup.launch_cli import NODES, default_params_file, node_commands
 
+pytestmark = pytest.mark.unit
+
 
 def _hdp(*args) -> list[str]:
-    return [sys.executable, '-m', 'hdp_msgs_py.cli.main', *args]
+    return [sys.executable, '-m', 'hdp_tools.cli.main', *args]
 
 
 def _env(ros_domain) -> dict:
@@ -292,7 +294,8 @@ def test_checkpoint_flags_reach_the_nodes_that_load_them(tmp_path):
 GRAPH_WAIT = r"""
 import time
 import rclpy
-from hdp_msgs_py import ros, topics
+from hdp_msgs_py import topics
+from hdp_ros import ros
 from hdp_msgs_py.msg import String
 from hdp_bringup.demo.watcher import DemoNode
 
@@ -408,7 +411,7 @@ def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
 
     # A one-episode recording is a demonstration as `ros2 bag record --custom-data` writes one
     # on a robot: it reads as an episode and the agent trains on it.
-    from hdp_msgs_py.episodes import list_episodes, read_episode
+    from hdp_data.episodes import list_episodes, read_episode
     recorded = read_episode(out / 'bag')
     assert recorded.metadata == {'task': 'reach_target', 'seed': 1000, 'variation': episode['variation'],
                                  'instruction': episode['instruction'], 'success': True}

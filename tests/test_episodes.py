@@ -11,10 +11,12 @@ from rosbags.typesys import Stores, get_typestore
 
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import image_to_numpy, numpy_to_image, seconds_to_time
-from hdp_msgs_py.episodes import (EpisodeError, EpisodeWriter, list_episodes, read_episode,
+from hdp_data.episodes import (EpisodeError, EpisodeWriter, list_episodes, read_episode,
                                   read_metadata)
 from hdp_motion.panda import ARM_JOINTS, FINGER_JOINTS, HOME
 from hdp_msgs_py.message import get_message
+
+pytestmark = pytest.mark.unit
 
 JointState = get_message('sensor_msgs/msg/JointState')
 String = get_message('std_msgs/msg/String')

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from hdp_msgs_py.checkpoints import CheckpointError
-from hdp_msgs_py.curves import read_curves
-from hdp_msgs_py.episodes import list_episodes, read_episode
+from hdp_learning.checkpoints import CheckpointError
+from hdp_learning.curves import read_curves
+from hdp_data.episodes import list_episodes, read_episode
 from hdp_planner.flat import checkpoint
 from hdp_planner.flat.act import ACTConfig, ACTNet
 from hdp_planner.flat.dataset import CONTROL_PERIOD_S, FlatDataset, downscale, load_flat_samples
@@ -20,7 +20,9 @@ from hdp_planner.flat.encoders import observation_tensors
 from hdp_planner.flat.policy import FlatObservation, FlatPolicy
 from hdp_planner.flat.train import FlatTrainConfig, train
 
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+pytestmark = pytest.mark.sim
+
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 # Small and with the learned word encoder (no MiniLM load) unless a test is about the defaults.
 DP = DiffusionPolicyConfig(language_encoder='words', channels=(8, 8, 8), keypoints=8, down_dims=(16, 32),
                            step_embed_dim=16, n_groups=4, horizon=8, n_action_steps=4, inference_steps=3)
@@ -271,7 +273,7 @@ def test_harness_under_torchrun_shards_episodes_and_writes_one_result(checkpoint
     assert one.returncode == 0, one.stderr[-3000:]
     env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
     two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
-                          '-m', 'hdp_msgs_py.cli.main', *args, '--json', str(tmp_path / 'two.json')],
+                          '-m', 'hdp_tools.cli.main', *args, '--json', str(tmp_path / 'two.json')],
                          text=True, capture_output=True, timeout=600, env=env)
     assert two.returncode == 0, two.stderr[-3000:]
     assert two.stdout.count('| agent |') == 1 and '2 process(es)' in two.stdout

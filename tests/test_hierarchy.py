@@ -10,13 +10,25 @@ from hdp_controller.baselines import PlannerPolicy
 from hdp_controller.low_level import PlanResult
 from hdp_eval.low_level_eval import oracle_episode
 from hdp_planner import language
-from hdp_planner.agent import NextBestPose
+from hdp_eval.closed_loop import GraphSettings
 from hdp_eval.hierarchy_eval import episode_instruction, evaluate, markdown_table, run_episode
+from hdp_planner.agent import NextBestPose
+from hdp_planner.grounding import Reading
 
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+pytestmark = pytest.mark.sim
+
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 
 
-class ReplayAgent:
+class StandInAgent:
+    """What the planner's loop needs of an agent, with no checkpoint: instructions read as given."""
+    vocabulary = None
+
+    def read(self, instruction):
+        return Reading(instruction, False, None, 0.0)
+
+
+class ReplayAgent(StandInAgent):
     """Predicts the expert's keyframes one after another, and records what it was shown."""
 
     def __init__(self, oracle):
@@ -28,36 +40,40 @@ class ReplayAgent:
         return NextBestPose(pose[:3], pose[3:], is_open, 1.0)
 
 
-class StuckAgent:
+class StuckAgent(StandInAgent):
+    def __init__(self, confidence=1.0):
+        self.confidence = confidence
+
     def predict(self, frames, infos, to_world, instruction, proprio):
-        return NextBestPose(np.array([0.5, 0.0, 1.1]), np.array([1.0, 0.0, 0.0, 0.0]), True, 1.0)
-
-
-def test_think_runs_the_world_while_the_arm_holds():
-    """--think-s: the world runs on (sim time advances) while the arm holds where it was commanded."""
-    from hdp_eval.hierarchy_eval import think
-    from hdp_sim_bridge import experts
-    from hdp_sim_bridge.world import PandaWorld
-    with PandaWorld() as world:
-        task, _, _ = experts.reachable_scene(world, 'open_box', 1000)
-        start, q = world.sim_time, world.joint_positions()
-        think(world, task, 0.5)
-        assert world.sim_time - start == pytest.approx(0.5, abs=0.01)
-        assert np.max(np.abs(world.joint_positions() - q)) < 1e-3
+        return NextBestPose(np.array([0.5, 0.0, 1.1]), np.array([1.0, 0.0, 0.0, 0.0]), True, self.confidence)
 
 
 def test_agent_with_planner_solves_reach_target_and_re_observes_each_segment():
     oracle = oracle_episode('reach_target', 4001)
     agent = ReplayAgent(oracle)
     record = run_episode('nbp_planner', agent, PlannerPolicy(), 'reach_target', 4001)
-    assert record.success and record.failure is None and record.segments == len(oracle.nbps)
+    assert record.success and record.outcome == 'succeeded' and record.failure is None
+    assert record.segments == len(oracle.nbps) == len(record.confidences)
     frames, instruction, (q, gripper_open) = agent.calls[0]
     assert frames == ['front', 'side'] and instruction == record.instruction and len(q) == 7
+    # The nodes' own words: the planner sent each segment, the controller planned and ran it.
+    assert any(line.startswith('planner: segment 1: sent pose') for line in record.status)
+    assert any(line.startswith('controller: segment') and line.endswith(': done') for line in record.status)
+
+
+def test_think_s_holds_each_trajectory_back_while_the_world_runs():
+    oracle = oracle_episode('reach_target', 4001)
+    prompt = run_episode('nbp_planner', ReplayAgent(oracle), PlannerPolicy(), 'reach_target', 4001)
+    slow = run_episode('nbp_planner', ReplayAgent(oracle), PlannerPolicy(), 'reach_target', 4001,
+                       settings=GraphSettings(think_s=1.0))
+    assert slow.success and slow.sim_seconds >= prompt.sim_seconds + 1.0 * slow.segments - 0.1
 
 
 def test_segment_budget_ends_an_episode():
-    record = run_episode('nbp_planner', StuckAgent(), PlannerPolicy(), 'open_drawer', 4002, max_segments=2)
-    assert not record.success and record.segments == 2 and record.failure == 'segment budget spent'
+    record = run_episode('nbp_planner', StuckAgent(), PlannerPolicy(), 'open_drawer', 4002,
+                         settings=GraphSettings(max_segments=2))
+    assert not record.success and record.segments == 2
+    assert (record.outcome, record.failure) == ('failed', '2 segments done without success')
 
 
 class StayPolicy:
@@ -69,28 +85,63 @@ class StayPolicy:
 
 
 def test_a_plan_ending_beyond_the_reach_tolerance_is_refused_as_controller_node_would():
-    kept = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2)
-    assert kept.failure == 'segment budget spent' and len(kept.reach_errors) == 2
+    kept = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002,
+                       settings=GraphSettings(max_segments=2, reach_tolerance=None))
+    assert kept.failure == '2 segments done without success' and len(kept.reach_errors) == 2
     metres, degrees = kept.reach_errors[0]
     assert metres > 0.05 and degrees >= 0.0
-    refused = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
-                          reach_tolerance=(metres - 0.01, 180.0))
-    assert refused.failure == 'refused: NBP not reachable' and refused.reach_errors == [(metres, degrees)]
-    assert refused.plan_draws == [1]
-    redrawn = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
-                          reach_tolerance=(metres - 0.01, 180.0), plan_attempts=3)
-    assert redrawn.failure == 'refused: NBP not reachable' and redrawn.plan_draws == [3]   # it never moves
-    loose = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002, max_segments=2,
-                        reach_tolerance=(metres + 0.01, degrees + 1.0))
-    assert loose.failure == 'segment budget spent'
+    tight = (metres - 0.01, 180.0)
+    refused = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002,
+                          settings=GraphSettings(max_segments=2, reach_tolerance=tight, plan_attempts=1))
+    assert refused.outcome == 'failed' and refused.failure.startswith('segment 1 failed: stay plan ends')
+    assert 'the NBP is not reachable as given' in refused.failure
+    assert refused.reach_errors == [(metres, degrees)] and refused.plan_draws == [1] and refused.segments == 1
+    redrawn = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002,
+                          settings=GraphSettings(max_segments=2, reach_tolerance=tight, plan_attempts=3))
+    assert 'not reachable' in redrawn.failure and redrawn.plan_draws == [3]      # it never moves
+    loose = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002,
+                        settings=GraphSettings(max_segments=2, reach_tolerance=(metres + 0.01, degrees + 1.0)))
+    assert loose.failure == '2 segments done without success'
+
+
+def test_a_first_prediction_below_min_confidence_refuses_the_instruction():
+    record = run_episode('stay', StuckAgent(confidence=0.01), StayPolicy(), 'open_drawer', 4002,
+                         settings=GraphSettings(min_confidence=0.05))
+    assert record.outcome == 'refused' and 'below min_confidence 0.05' in record.failure
+    assert record.segments == 0 and record.confidences == [0.01] and record.plan_times == []
+
+
+def test_the_evaluation_refuses_by_the_nodes_rules_not_a_copy(monkeypatch):
+    """A rule changed in the nodes' logic changes the evaluation's records: there is no second copy
+    of it in hdp_eval. One planner rule (instruction validation) and one controller rule (the
+    reach check) are replaced here by stricter ones; the records must say so."""
+    from hdp_controller import segment_planning
+    from hdp_controller.inputs import SegmentRefused
+    from hdp_planner import planner_logic
+
+    def no_instruction(text, vocabulary):
+        raise planner_logic.InstructionRefused('a rule this test added to planner_logic')
+
+    monkeypatch.setattr(planner_logic, 'validate_instruction', no_instruction)
+    record = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002)
+    assert (record.outcome, record.failure) == ('refused', 'a rule this test added to planner_logic')
+    monkeypatch.undo()
+
+    def never_reachable(name, miss, tolerance):
+        raise SegmentRefused('a rule this test added to segment_planning')
+
+    monkeypatch.setattr(segment_planning, 'check_reach', never_reachable)
+    record = run_episode('stay', StuckAgent(), StayPolicy(), 'open_drawer', 4002)
+    assert record.outcome == 'failed'
+    assert record.failure == 'segment 1 failed: a rule this test added to segment_planning'
 
 
 def test_a_low_level_that_draws_noise_draws_each_episodes_from_its_seed():
     policy = StayPolicy()
     policy.reseed = lambda seed: seeds.append(seed)
     seeds = []
-    run_episode('stay', StuckAgent(), policy, 'open_drawer', 4002, max_segments=1)
-    run_episode('stay', StuckAgent(), policy, 'open_drawer', 4003, max_segments=1)
+    run_episode('stay', StuckAgent(), policy, 'open_drawer', 4002, settings=GraphSettings(max_segments=1))
+    run_episode('stay', StuckAgent(), policy, 'open_drawer', 4003, settings=GraphSettings(max_segments=1))
     assert seeds == [4002, 4003]
 
 
@@ -106,7 +157,7 @@ def test_paraphrase_instructions_and_all_phrasing_sets_side_by_side():
     paraphrase = episode_instruction('open_drawer', 7, 2, 'paraphrase')
     assert paraphrase in {p.format(*['top'] * p.count('{}')) for p in language.paraphrase_phrasings('open_drawer')}
     results = evaluate(StuckAgent(), {'nbp_planner': PlannerPolicy()}, ['open_box'], 1, 4003,
-                       ('seen', 'heldout', 'paraphrase'), max_segments=1, progress=False)
+                       ('seen', 'heldout', 'paraphrase'), settings=GraphSettings(max_segments=1), progress=False)
     seen, heldout, paraphrase = (results['agents']['nbp_planner'][p]['open_box']['records'][0]['instruction']
                                  for p in ('seen', 'heldout', 'paraphrase'))
     assert seen in language.training_phrasings('open_box') and heldout == 'raise the lid of the box'
@@ -117,8 +168,8 @@ def test_paraphrase_instructions_and_all_phrasing_sets_side_by_side():
 
 def test_evaluate_table_and_training_seed_refusal():
     planner = PlannerPolicy()
-    results = evaluate(StuckAgent(), {'nbp_planner': planner}, ['reach_target'], 1, 4003, max_segments=1,
-                       progress=False)
+    results = evaluate(StuckAgent(), {'nbp_planner': planner}, ['reach_target'], 1, 4003,
+                       settings=GraphSettings(max_segments=1), progress=False)
     table = markdown_table(results)
     assert '| nbp_planner | seen | 0 | 0.0 |' in table
     planner.training_seeds = {'reach_target': [4003]}

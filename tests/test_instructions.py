@@ -1,12 +1,14 @@
-"""The tasks' instructions are data both the simulator and the planner read (hdp_msgs_py.instructions)."""
+"""The tasks' instructions are data both the simulator and the planner read (hdp_data.instructions)."""
 
 import numpy as np
 import pytest
 
-from hdp_msgs_py import instructions
+from hdp_data import instructions
 from hdp_planner import language
 from hdp_sim_bridge import objects
 from hdp_sim_bridge.tasks import TASKS
+
+pytestmark = pytest.mark.unit
 
 
 def test_the_simulator_names_the_variations_the_instructions_name():

@@ -5,7 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdp_msgs_py.keyframes import DEFAULT_STOPPING_DELTA, discover_keyframes, segments
+from hdp_data.keyframes import DEFAULT_STOPPING_DELTA, discover_keyframes, segments
+
+pytestmark = pytest.mark.unit
 
 
 def piecewise(*pieces, joints=7):

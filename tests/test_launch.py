@@ -1,5 +1,6 @@
 """Launch arguments: task, seed, method and params_file on hdp_graph.launch.py and `hdp launch`."""
 
+import argparse
 import json
 import os
 import signal
@@ -13,6 +14,8 @@ import yaml
 
 from hdp_bringup.launch_cli import NODES, launch_overrides
 
+pytestmark = pytest.mark.unit
+
 LAUNCH_FILE = Path(__file__).resolve().parents[1] / 'src' / 'hdp_bringup' / 'launch' / 'hdp_graph.launch.py'
 
 
@@ -24,6 +27,19 @@ def test_launch_arguments_set_the_parameters_of_the_nodes_they_concern():
                        ((None, 'x', None), 'whole number'), ((None, None, 'magic'), 'unknown method')):
         with pytest.raises(ValueError, match=match):
             launch_overrides(*bad)
+
+
+def test_hdp_launch_and_hdp_demo_take_every_method_controller_node_takes():
+    """One list of low-level methods (hdp_controller.methods): `--method planner_rrt` was refused
+    by `hdp launch` and `hdp demo` while controller_node ran it."""
+    from hdp_bringup.demo import cli as demo_cli
+    from hdp_controller import controller_node
+    assert 'planner_rrt' in controller_node.METHODS
+    for method in controller_node.METHODS:
+        assert launch_overrides(method=method) == {'controller_node': {'method': method}}
+        parser = argparse.ArgumentParser()
+        demo_cli.configure(parser)
+        assert parser.parse_args(['--task', 'reach_target', '--method', method]).method == method
 
 
 def _launch_file_nodes(monkeypatch, tmp_path, given: dict) -> tuple[list, dict]:
@@ -48,11 +64,11 @@ def test_the_launch_file_declares_its_arguments_and_passes_them_on(monkeypatch, 
 
 def test_hdp_launch_takes_the_same_arguments(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1')
-    graph = subprocess.Popen([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--nodes', 'sim_bridge_node',
+    graph = subprocess.Popen([sys.executable, '-m', 'hdp_tools.cli.main', 'launch', '--nodes', 'sim_bridge_node',
                               '--task', 'open_oven', '--seed', '7', '-p', 'sim_bridge_node:camera_rate_hz:=0.0'],
                              env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        echo = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'topic', 'echo', '--once',
+        echo = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', 'topic', 'echo', '--once',
                                '--timeout', '60', '/hdp/sim/episode', 'std_msgs/msg/String'],
                               env=env, text=True, capture_output=True, timeout=90)
     finally:
@@ -61,7 +77,7 @@ def test_hdp_launch_takes_the_same_arguments(ros_domain):
     assert echo.returncode == 0, echo.stderr + output
     episode = json.loads(yaml.safe_load(echo.stdout.split('\n---')[0])['data'])     # echo prints YAML
     assert (episode['task'], episode['seed']) == ('open_oven', 7)
-    bad = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--method', 'magic'],
+    bad = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', 'launch', '--method', 'magic'],
                          env=env, text=True, capture_output=True, timeout=60)
     assert bad.returncode == 2 and "unknown method 'magic'" in bad.stderr
 

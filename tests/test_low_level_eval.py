@@ -14,14 +14,17 @@ from hdp_eval.low_level_eval import distinct_nbps, evaluate, markdown_table, ora
 from hdp_controller.low_level import HORIZON, PlanResult
 from hdp_controller.observation import points_from_messages
 from hdp_eval.observation import front_camera, front_points, segment_request
-from hdp_motion import planning
-from hdp_msgs_py import conversions, workspace
-from hdp_msgs_py.episodes import read_episode
+from hdp_motion import panda, planning
+from hdp_data import workspace
+from hdp_msgs_py import conversions
+from hdp_data.episodes import read_episode
 from hdp_sim_bridge.collect import record_episode
 from hdp_sim_bridge.experts import reachable_scene
 from hdp_sim_bridge.world import PandaWorld
 
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+pytestmark = pytest.mark.sim
+
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 SEED = 5000       # a seed the planner solves for reach_target and open_drawer
 
 
@@ -50,6 +53,14 @@ class AlwaysIKError:
         return PlanResult(None, failure='ik_error', ik_error=True)
 
 
+class BeyondTheLimits:
+    """Plans a path out of the joint limits: controller_node's timing refuses it, so must the evaluation."""
+    name = 'beyond_limits'
+
+    def plan(self, request, scene=None):
+        return PlanResult(np.vstack([request.q, panda.UPPER + 0.01]))
+
+
 # --- observation -------------------------------------------------------------------
 
 def test_front_points_are_a_fixed_size_workspace_cloud_and_match_the_message_path(world):
@@ -66,12 +77,22 @@ def test_front_points_are_a_fixed_size_workspace_cloud_and_match_the_message_pat
 
 
 def test_segment_request_reads_the_world_state(world):
+    """As controller_node reads /joint_states: the start pose by FK of the joints, the gripper's
+    state from the fingers' width (panda.reads_open), not from the last command."""
     reachable_scene(world, 'reach_target', SEED)
-    world.command_gripper(False)
     goal = np.array([0.5, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0])
     request = segment_request(world, goal, True, np.zeros((4, 3)))
-    np.testing.assert_allclose(request.start_pose[:3], world.ee_pose()[0])
+    xyz, quat = world.ee_pose()
+    np.testing.assert_allclose(request.start_pose[:3], xyz, atol=1e-6)
+    assert abs(abs(np.dot(request.start_pose[3:], quat)) - 1) < 1e-6
     np.testing.assert_allclose(request.q, world.joint_positions())
+    assert request.gripper_width == pytest.approx(world.gripper_width())
+    assert request.gripper_open is True and request.goal_gripper_open is True
+    world.command_gripper(False)
+    assert segment_request(world, goal, True, np.zeros((4, 3))).gripper_open is True     # the fingers not moved yet
+    world.step(240)
+    assert world.gripper_width() < 0.01
+    request = segment_request(world, goal, True, np.zeros((4, 3)))
     assert request.gripper_open is False and request.goal_gripper_open is True
     assert request.points.dtype == np.float32 and request.goal_pose.shape == (7,)
 
@@ -162,6 +183,14 @@ def test_pose_ik_on_a_straight_line_reaches_the_target(world, oracles):
     assert record.success and len(record.joint_paths[0]) == HORIZON + 2    # current joints first
 
 
+def test_a_plan_out_of_the_joint_limits_is_refused_as_controller_node_refuses_it(world, oracles):
+    record = run_episode(BeyondTheLimits(), oracles['reach_target'], world=world)
+    assert not record.success and not record.ik_error
+    assert record.failure.startswith('beyond_limits trajectory refused: ')
+    assert 'outside the joint position limits' in record.failure
+    assert len(record.plan_times) == 1 and record.joint_paths == [] and record.reach_errors == []
+
+
 def test_always_failing_ik_gives_zero_success_and_full_ik_error():
     results = evaluate({'always_ik_error': AlwaysIKError()}, ['reach_target'], 2, SEED, progress=False)
     assert markdown_table(results).splitlines()[-1] == '| always_ik_error | 0% / 100% | 0% / 100% |'
@@ -240,7 +269,7 @@ def test_torchrun_shards_the_episodes_and_gathers_one_result(tmp_path):
     assert one.returncode == 0, one.stderr
     env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
     two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
-                          '-m', 'hdp_msgs_py.cli.main', *args, '--json', str(tmp_path / 'two.json')],
+                          '-m', 'hdp_tools.cli.main', *args, '--json', str(tmp_path / 'two.json')],
                          text=True, capture_output=True, timeout=600, env=env)
     assert two.returncode == 0, two.stderr[-3000:]
     assert two.stdout.count('| method |') == 1

@@ -18,6 +18,8 @@ from hdp_msgs_py import cdr
 from hdp_msgs_py.message import get_message, message_types
 from hdp_msgs_py.msg_spec import PRIMITIVES, STRING, FieldSpec
 
+pytestmark = pytest.mark.unit
+
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 _INT_RANGES = {'int8': 8, 'int16': 16, 'int32': 32, 'int64': 64}

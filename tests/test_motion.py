@@ -11,6 +11,8 @@ import pytest
 from hdp_motion import panda, planning, timing
 from hdp_motion.panda import HOME, LOWER, UPPER, VELOCITY_LIMITS
 
+pytestmark = pytest.mark.sim
+
 DOWN = np.array([1.0, 0.0, 0.0, 0.0])        # gripper pointing at the floor
 LEFT, RIGHT = np.array([0.45, -0.3, 0.25]), np.array([0.45, 0.3, 0.25])
 

@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from hdp_msgs_py.conversions import Intrinsics, quat_to_matrix
-from hdp_msgs_py.curves import read_curves
-from hdp_msgs_py.workspace import WORKSPACE
+from hdp_learning.curves import read_curves
+from hdp_data.workspace import WORKSPACE
 from hdp_planner import checkpoint, language, rotations, voxels
 from hdp_planner.agent import NextBestPoseAgent
 from hdp_planner.dataset import KeyframeDataset, draw_move
@@ -26,10 +26,12 @@ from hdp_planner.model import ModelConfig, NextBestPoseNet, proprio_vector
 from hdp_planner.train import TrainConfig, losses, train, training_batch
 from hdp_sim_bridge.tasks import TASKS
 
+pytestmark = pytest.mark.unit
+
 torch.set_num_threads(1)
 
 TINY = dict(grid_size=8, channels=(4, 8, 8), language_dim=16, head_hidden=32)
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 
 
 @pytest.fixture(scope='module')
@@ -271,7 +273,7 @@ def test_train_config_defaults_are_train_defaults_and_the_released_recipe_is_the
     """TrainConfig (the --config "train:" section) defaults to what train() and the flags did before it;
     config/NAME.yaml rebuilds models/NAME.pt's network and hyper-parameters (the vocabulary is
     today's task phrasings', which have grown since the release's six tasks)."""
-    from hdp_msgs_py.config import load_sections
+    from hdp_learning.config import load_sections
     defaults = {name: p.default for name, p in inspect.signature(train).parameters.items()}
     assert {f.name: defaults[f.name] for f in dataclasses.fields(TrainConfig)} == vars(TrainConfig())
     root = Path(__file__).resolve().parents[1]
@@ -332,13 +334,13 @@ def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path
     assert resolved['model']['vocabulary'] == language.task_vocabulary()
     env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
     two = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
-                          '-m', 'hdp_msgs_py.cli.main', *options, '--out', str(tmp_path / 'two.pt')],
+                          '-m', 'hdp_tools.cli.main', *options, '--out', str(tmp_path / 'two.pt')],
                          text=True, capture_output=True, timeout=300, env=env)
     assert two.returncode == 0, two.stderr[-3000:]
     assert two.stdout.count('"train": {') == 1          # rank 0 alone prints
     single, split = checkpoint.load(tmp_path / 'one.pt'), checkpoint.load(tmp_path / 'two.pt')
     assert (single['config']['train']['processes'], split['config']['train']['processes']) == (1, 2)
-    from hdp_msgs_py.distributed import weights_digest
+    from hdp_learning.distributed import weights_digest
     assert weights_digest(checkpoint.build_model(split)) == split['config']['train']['weights_sha256']
     # The loss is invariant to a constant added to every logit of a softmax, so the heatmaps' logit
     # biases and the attention's key bias get gradients of float rounding, which Adam scales up to
@@ -476,7 +478,7 @@ def test_an_agent_trained_on_the_hand_pose_reads_it_from_the_joint_positions():
 
 @pytest.mark.parametrize('command', [['train', 'high-level'], ['eval', 'high-level-offline']])
 def test_cli_help(command):
-    result = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', *command, '--help'],
+    result = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', *command, '--help'],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert '--data' in result.stdout
@@ -488,7 +490,7 @@ def test_an_episode_whose_cameras_never_pair_says_so(monkeypatch):
     from types import SimpleNamespace
 
     from hdp_motion import panda
-    from hdp_msgs_py.episodes import JointStates
+    from hdp_data.episodes import JointStates
     from hdp_planner import dataset
     t = np.linspace(0.0, 2.0, 50)
     still = np.zeros((50, 7))

@@ -22,11 +22,13 @@ import torch
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.msg import Header, JointState, TFMessage, Time, TransformStamped
-from hdp_msgs_py.outcome import Outcome
+from hdp_msgs_py.outcome import Outcome, StatusLine
 from hdp_planner.agent import NextBestPose
 from hdp_planner.grounding import Reading
 from hdp_planner.planner_logic import (MAX_INSTRUCTION_CHARS, InstructionRefused, Observations, PlannerLoop,
-                                       validate_instruction)
+                                       Prediction, SegmentGoal, validate_instruction)
+
+pytestmark = pytest.mark.unit
 
 torch.set_num_threads(1)
 
@@ -64,13 +66,16 @@ def test_without_a_vocabulary_only_empty_and_overlong_instructions_are_refused()
 class FakeAgent:
     def __init__(self):
         self.calls = []
+        self.clouds = []          # the cloud each prediction saw (xyz, colours), one of its own per call
 
     def read(self, instruction):
         return Reading(instruction, False, None, 0.0)
 
     def predict(self, frames, infos, to_world, instruction, proprio):
         self.calls.append((frames, infos, to_world, instruction, proprio))
-        return NextBestPose(np.array([0.5, 0.1, 0.9]), np.array([1.0, 0.0, 0.0, 0.0]), len(self.calls) % 2 == 0, 0.75)
+        self.clouds.append((np.full((2, 3), len(self.calls), np.float32), np.zeros((2, 3), np.uint8)))
+        return NextBestPose(np.array([0.5, 0.1, 0.9]), np.array([1.0, 0.0, 0.0, 0.0]), len(self.calls) % 2 == 0, 0.75,
+                            self.clouds[-1])
 
 
 def _stamp(seconds: float) -> Time:
@@ -102,14 +107,34 @@ def _result(stamp, text='done'):
     return Header(stamp=stamp, frame_id=text)
 
 
+_KINDS = {Prediction: 'prediction', SegmentGoal: 'segment_goal', Outcome: 'outcome'}
+
+
+def _kinds(outputs) -> list[str]:
+    """Each record's kind: 'prediction', 'segment_goal', 'outcome', or a StatusLine's 'info' /
+    'error'; any other record is an error."""
+    return [('error' if o.error else 'info') if type(o) is StatusLine else _KINDS[type(o)] for o in outputs]
+
+
 def _texts(outputs, kind=None):
-    return [msg for k, msg in outputs if k in ((kind,) if kind else ('info', 'error'))]
+    """The status lines' texts, all or those of ``kind`` ('info' or 'error')."""
+    assert kind in (None, 'info', 'error')
+    return [o.text for o in outputs if type(o) is StatusLine and kind in (None, 'error' if o.error else 'info')]
 
 
 def _outcomes(outputs) -> list[tuple]:
     """(instruction, result, segments) of each outcome, after a JSON round trip as on the wire."""
     return [(o.instruction, o.result, o.segments) for o in
-            (Outcome.from_json(msg.to_json()) for k, msg in outputs if k == 'outcome')]
+            (Outcome.from_json(o.to_json()) for o in outputs if type(o) is Outcome)]
+
+
+def _sent(outputs) -> SegmentGoal:
+    """The one SegmentGoal of a step that predicted and sent a segment (after its Prediction,
+    before its status line); its gripper goal and NBP carry one stamp."""
+    assert _kinds(outputs) == ['prediction', 'segment_goal', 'info'], _kinds(outputs)
+    goal = outputs[1]
+    assert goal.gripper_goal.header.stamp == goal.nbp.header.stamp
+    return goal
 
 
 def test_an_instruction_read_as_a_training_one_says_so_and_the_agent_is_asked_with_the_typed_words():
@@ -127,9 +152,11 @@ def test_a_segment_sends_gripper_goal_and_nbp_with_one_stamp_then_waits_for_fres
     feed_frames(loop.observations, 1.0)
     assert 'up to 3 segments' in _texts(loop.on_instruction('open the drawer', now_s=100.0))[0]
     out = loop.step(100.1, 5_000_000_000)
-    assert [k for k, _ in out] == ['gripper_goal', 'nbp', 'info']
-    goal, pose = out[0].msg, out[1].msg
+    assert _kinds(out) == ['prediction', 'segment_goal', 'info']
+    prediction, goal, pose = out[0], out[1].gripper_goal, out[1].nbp
     assert goal.header.stamp == pose.header.stamp == Time(sec=5)
+    assert prediction.confidence == 0.75 and prediction.seconds >= 0.0
+    assert prediction.cloud is loop.agent.clouds[0]                           # what the agent saw, for a viewer
     assert goal.name == [topics.GRIPPER_GOAL_JOINT] and list(goal.position) == [0.0]      # first call: close
     assert pose.header.frame_id == 'world' and pose.pose.position.x == pytest.approx(0.5)
     frames, infos, to_world, instruction, (q, gripper_open) = loop.agent.calls[0]
@@ -147,7 +174,8 @@ def test_a_segment_sends_gripper_goal_and_nbp_with_one_stamp_then_waits_for_fres
     assert loop.step(102.6, 7_000_000_000) == []                              # the frames are from before
     feed_frames(loop.observations, 2.0)
     out = loop.step(102.7, 7_000_000_000)
-    assert out[1].msg.header.stamp == Time(sec=7) and loop.agent.calls[1][4][1] is False
+    assert _sent(out).nbp.header.stamp == Time(sec=7) and loop.agent.calls[1][4][1] is False
+    assert out[0].cloud is loop.agent.clouds[1]                               # this prediction's cloud
 
 
 def test_the_loop_ends_on_success_reported_after_the_segment():
@@ -157,7 +185,7 @@ def test_the_loop_ends_on_success_reported_after_the_segment():
     loop.on_instruction('open the drawer', 0.0)
     assert loop.step(0.1, 1) == []                          # waits for a fresh success report
     loop.on_success(False)
-    stamp = loop.step(0.2, 2)[1].msg.header.stamp
+    stamp = _sent(loop.step(0.2, 2)).nbp.header.stamp
     loop.on_result(_result(stamp), 1.0)
     loop.on_success(True)
     out = loop.step(1.1, 3)
@@ -171,7 +199,7 @@ def test_max_segments_ends_the_loop_on_a_robot_without_success_reports():
     loop.on_instruction('pick up the red cup', 0.0)
     for i in range(2):
         feed_frames(loop.observations, 1.0 + i)
-        stamp = loop.step(0.1 + i, 10 + i)[1].msg.header.stamp
+        stamp = _sent(loop.step(0.1 + i, 10 + i)).nbp.header.stamp
         loop.on_result(_result(stamp), 0.5 + i)
     out = loop.step(3.0, 20)
     assert _texts(out, 'info') == ["instruction 'pick up the red cup': 2 segments done (this robot reports no success)"]
@@ -210,7 +238,7 @@ def test_a_missing_result_is_reported_and_the_loop_re_observes_and_sends_a_fresh
     loop = _loop()
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
-    lost = loop.step(0.1, 1)[1].msg.header.stamp
+    lost = _sent(loop.step(0.1, 1)).nbp.header.stamp
     loop.gripper_open = True                                  # as if an earlier segment had opened it
     assert loop.step(10.1, 2) == []                           # within result_timeout_s
     loop.observations.on_joint_state(JointState(header=Header(stamp=_stamp(1.5)), name=list(panda.ARM_JOINTS +
@@ -222,18 +250,17 @@ def test_a_missing_result_is_reported_and_the_loop_re_observes_and_sends_a_fresh
     assert loop.step(10.3, 4) == []                           # the frames are from before the timeout
     feed_frames(loop.observations, 2.0)                       # fingers at 0.08 m: open
     out = loop.step(10.4, 5)
-    assert [k for k, _ in out][:2] == ['gripper_goal', 'nbp'] and 'segment 2: sent' in _texts(out)[0]
-    assert out[1].msg.header.stamp != lost
+    assert _sent(out).nbp.header.stamp != lost and 'segment 2: sent' in _texts(out)[0]
     assert loop.agent.calls[1][4][1] is True                  # the gripper state read from the fingers again
     assert loop.on_result(_result(lost), 11.0) == []          # the lost segment's late result is ignored
-    assert _texts(loop.on_result(_result(out[1].msg.header.stamp), 12.0))[0].startswith('segment 2: pose')
+    assert _texts(loop.on_result(_result(out[1].nbp.header.stamp), 12.0))[0].startswith('segment 2: pose')
 
 
 def test_a_new_instruction_reads_the_gripper_from_the_fingers_not_the_last_goal():
     loop = _loop()
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
-    stamp = loop.step(0.1, 1)[1].msg.header.stamp                 # the fake agent: close
+    stamp = _sent(loop.step(0.1, 1)).nbp.header.stamp             # the fake agent: close
     loop.on_result(_result(stamp), 1.0)
     assert loop.gripper_open is False
     loop.on_instruction('open the drawer', 2.0)                   # e.g. after a sim reset: hand open
@@ -271,7 +298,7 @@ def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_th
     loop = _loop()
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
-    stamp = loop.step(0.1, 1)[1].msg.header.stamp
+    stamp = _sent(loop.step(0.1, 1)).nbp.header.stamp
     assert 'queued' in _texts(loop.on_instruction('pick up the cup', 0.2))[0]
     out = loop.on_result(_result(stamp, 'failed: no path'), 1.0)
     assert _texts(out) == ['segment 1: pose (0.500, 0.100, 0.900) gripper close -> failed: no path in 0.9 s',
@@ -286,7 +313,7 @@ def test_a_robot_that_stops_answering_fails_the_instruction_naming_why():
     assert loop.robot_gone('no /joint_states for 5.2 s', 0.0) == []               # idle
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
-    stamp = loop.step(0.1, 1)[1].msg.header.stamp
+    stamp = _sent(loop.step(0.1, 1)).nbp.header.stamp
     out = loop.robot_gone('no /joint_states for 5.2 s', 6.0)
     assert _texts(out, 'error') == ["instruction 'open the drawer': no /joint_states for 5.2 s"]
     assert _outcomes(out) == [('open the drawer', 'failed', 1)]
@@ -298,14 +325,33 @@ def test_an_instruction_the_agent_cannot_ground_is_refused_before_anything_moves
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
     out = loop.step(0.1, 1)
-    assert [k for k, _ in out] == ['error', 'outcome']        # no NBP, no gripper goal
+    assert _kinds(out) == ['prediction', 'error', 'outcome']  # no NBP, no gripper goal
+    assert out[0].confidence == 0.75 and out[0].cloud is loop.agent.clouds[0]
     assert _texts(out, 'error') == ["instruction 'open the drawer': refused: the agent cannot ground it (its first "
                                     "next-best pose has confidence 0.75, below min_confidence 0.80)"]
     assert _outcomes(out) == [('open the drawer', 'refused', 0)] and loop.instruction is None
     confident = _loop(min_confidence=0.7)
     feed_frames(confident.observations, 1.0)
     confident.on_instruction('open the drawer', 0.0)
-    assert [k for k, _ in confident.step(0.1, 1)] == ['gripper_goal', 'nbp', 'info']
+    assert _kinds(confident.step(0.1, 1)) == ['prediction', 'segment_goal', 'info']
+
+
+def test_the_agent_names_its_vocabulary_only_when_it_reads_words():
+    """planner_node passes agent.vocabulary to PlannerLoop: a word encoder's words, or None for the
+    sentence encoder, which reads any words (its confidence refuses what it cannot act on)."""
+    from hdp_planner.agent import NextBestPoseAgent
+    from hdp_planner.model import ModelConfig
+
+    class ConfigOnly(torch.nn.Module):
+        def __init__(self, config):
+            super().__init__()
+            self.config = config
+    assert NextBestPoseAgent(ConfigOnly(ModelConfig(vocabulary=VOCABULARY))).vocabulary == VOCABULARY
+    sentences = NextBestPoseAgent(ConfigOnly(ModelConfig(vocabulary=VOCABULARY, language_encoder='minilm')))
+    assert sentences.vocabulary is None
+    loop = PlannerLoop(FakeAgent(), sentences.vocabulary)
+    assert _kinds(loop.on_instruction('uncover the saucepan', 0.0)) == ['info']
+    assert loop.instruction == 'uncover the saucepan'
 
 
 def test_a_refused_instruction_leaves_the_running_one_alone():
@@ -444,7 +490,7 @@ controller_node:
 
 
 def _launch(ros_domain, params, *extra) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--params-file', params, *extra],
+    return subprocess.Popen([sys.executable, '-m', 'hdp_tools.cli.main', 'launch', '--params-file', params, *extra],
                             env=_env(ros_domain), text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
@@ -517,7 +563,7 @@ def test_hdp_launch_keeps_the_other_nodes_by_default_and_respawns_on_request(ros
     launch.wait(timeout=40)
     reader.join(timeout=5)
     assert '[launch] planner_node exited with code 1; respawning it in 0.2 s' in lines
-    bad = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'launch', '--respawn', 'planner_node',
+    bad = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', 'launch', '--respawn', 'planner_node',
                           '--nodes', 'controller_node'], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--respawn names node(s) not started: ['planner_node']" in bad.stderr
 
@@ -525,7 +571,7 @@ def test_hdp_launch_keeps_the_other_nodes_by_default_and_respawns_on_request(ros
 # --- helper processes -------------------------------------------------------------------------------
 
 def _node(name):
-    from hdp_msgs_py import ros
+    from hdp_ros import ros
     from hdp_msgs_py.msg import String
     ros.init(args=sys.argv)
     node = ros.Node(name)
@@ -563,7 +609,7 @@ def listen(expect: int, seconds: float, *instructions: str) -> None:
 
 def controller() -> None:
     """Stand in for controller_node: answer each NBP 'done' after a moment; report what came."""
-    from hdp_msgs_py import workspace
+    from hdp_data import workspace
     from hdp_msgs_py.msg import Marker, PointCloud2, PoseStamped, String, TFMessage
     node, status = _node('fake_controller')
     goals, poses, outcomes = {}, [], []

@@ -5,9 +5,12 @@ from pathlib import Path
 
 import launch_stubs
 import numpy as np
+import pytest
 import yaml
 
 from hdp_motion import panda
+
+pytestmark = pytest.mark.unit
 
 BRINGUP = Path(__file__).resolve().parents[1] / 'src' / 'hdp_bringup'
 LAUNCH = BRINGUP / 'launch' / 'hdp_real_fr3.launch.py'

@@ -22,10 +22,12 @@ from hdp_controller.rk_diffuser import (RKDConfig, RKDiffuser, goal_loss, joint_
                                         smoothness_loss)
 from hdp_controller.unet import TemporalUnet
 from hdp_motion import kinematics, panda
-from hdp_msgs_py.curves import read_curves
-from hdp_msgs_py.episodes import list_episodes, read_episode
+from hdp_learning.curves import read_curves
+from hdp_data.episodes import list_episodes, read_episode
 
-HDP = [sys.executable, '-m', 'hdp_msgs_py.cli.main']
+pytestmark = pytest.mark.unit
+
+HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 SMALL = RKDConfig(unet_dim=8, point_features=16, point_width=8, n_points=64, diffusion_steps=10)
 
 
@@ -533,11 +535,11 @@ def free_port() -> int:
 
 
 def _torchrun(launch: str, arguments: list, env: dict, port: int) -> list:
-    """Run ``python -m hdp_msgs_py.cli.main ARGUMENTS`` as two torchrun ranks: both in one launcher
+    """Run ``python -m hdp_tools.cli.main ARGUMENTS`` as two torchrun ranks: both in one launcher
     ('standalone'), or one per launcher, as two machines join (torchrun's c10d rendezvous; here
     both on loopback, the first launcher hosting the store). Returns the launchers' results."""
     run = [sys.executable, '-m', 'torch.distributed.run']
-    command = ['-m', 'hdp_msgs_py.cli.main', *arguments]
+    command = ['-m', 'hdp_tools.cli.main', *arguments]
     if launch == 'standalone':
         return [subprocess.run([*run, '--standalone', '--nproc-per-node', '2', *command],
                                text=True, capture_output=True, timeout=120, env=env)]

@@ -1,4 +1,4 @@
-"""hdp_msgs_py.ros: the Fast DDS profile every process gets, and what it does to the sockets."""
+"""hdp_ros.ros: the Fast DDS profile every process gets, and what it does to the sockets."""
 
 import os
 import signal
@@ -9,8 +9,10 @@ import xml.etree.ElementTree as ElementTree
 
 import pytest
 
-from hdp_msgs_py import ros
+from hdp_ros import ros
 from test_dds_processes import finish, start
+
+pytestmark = pytest.mark.unit
 
 
 def test_the_localhost_profile_is_applied_by_default():
@@ -75,7 +77,7 @@ def test_a_node_listens_on_loopback_only(ros_domain):
 
 
 def test_liveness_names_silent_joint_states_and_a_clock_that_stands_still():
-    from hdp_msgs_py.liveness import Liveness
+    from hdp_ros.liveness import Liveness
     live = Liveness(timeout_s=2.0)
     assert live.problem(wall_s=0.0, clock_s=10.0) is None          # nothing heard yet: not judged
     live.heard(1.0)

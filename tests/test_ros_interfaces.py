@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.dds
+
 pytest.importorskip('control_msgs.action', reason='the interface packages are built by `make setup`')
 
 from builtin_interfaces.msg import Duration  # noqa: E402
@@ -41,7 +43,7 @@ def wire():
     import os
 
     import rclpy
-    from hdp_msgs_py import ros
+    from hdp_ros import ros
     ros.init(args=[], domain_id=int(os.environ.get('ROS_DOMAIN_ID', 0)) or 230)
     node = rclpy.create_node('wire_check')
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from hdp_msgs_py import instructions
+from hdp_data import instructions
 from hdp_planner import checkpoint, language, sentence_encoder
 from hdp_planner.dataset import KeyframeDataset
 from hdp_planner.model import ModelConfig, NextBestPoseNet
@@ -18,6 +18,8 @@ from hdp_planner.train import _stored_model_config, losses, training_batch
 from hdp_planner.voxels import collate_clouds
 
 from test_planner_agent import TINY, synthetic_episode
+
+pytestmark = pytest.mark.unit
 
 torch.set_num_threads(1)
 
@@ -175,7 +177,7 @@ def test_checkpoints_from_before_the_choice_load_as_words(tmp_path):
 
 
 def test_the_six_task_agent_still_loads_with_the_word_encoder():
-    from hdp_msgs_py.checkpoints import default_path
+    from hdp_learning.checkpoints import default_path
     model, stored = checkpoint.load_model(default_path('hdp_nbp_agent.pt'))
     assert 'language_encoder' not in stored['config']['model']
     assert model.config.language_encoder == 'words' and isinstance(model.language, language.WordEncoder)

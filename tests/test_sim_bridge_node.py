@@ -12,6 +12,8 @@ import pytest
 
 from hdp_sim_bridge.bridge import gripper_target, parse_cameras, parse_reset
 
+pytestmark = pytest.mark.dds
+
 
 def test_bridge_node_end_to_end(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))

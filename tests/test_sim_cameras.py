@@ -17,6 +17,8 @@ from hdp_sim_bridge.cameras import D415Camera, d415_intrinsics, default_cameras,
 from hdp_sim_bridge.world import (TABLE_CENTER_XY, TABLE_HALF_EXTENTS, TABLE_TOP_Z, WORKSPACE,
                                   PandaWorld)
 
+pytestmark = pytest.mark.unit
+
 BOX_CENTER = np.array([0.5, -0.15, TABLE_TOP_Z + 0.04])
 BOX_HALF = np.array([0.05, 0.04, 0.04])
 BOX_YAW = math.radians(30)

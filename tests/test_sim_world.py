@@ -13,10 +13,12 @@ import pytest
 
 from hdp_motion import panda
 from hdp_motion import timing
-from hdp_motion.planning import EE_LINK_ID
+from hdp_motion.panda import EE_LINK_ID
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.trajectory_follower import ActiveTrajectory
 from hdp_sim_bridge.world import GRASP_FORCE_LIMIT, TABLE_TOP_Z, TIME_STEP, PandaWorld
+
+pytestmark = pytest.mark.sim
 
 DOWN = (1.0, 0.0, 0.0, 0.0)       # grasp target z axis pointing at the table
 BOX_HALF = 0.02                   # m: a 4 cm cube
@@ -330,3 +332,14 @@ def test_a_simulator_process_leaves_no_generated_urdfs_behind(tmp_path):
     folder = Path(result.stdout.strip())
     assert folder.parent == tmp_path
     assert not folder.exists()
+
+
+@pytest.mark.dds
+def test_the_world_loads_no_planner():
+    """The simulator's world needs the Panda's joint and link indices (hdp_motion.panda), not
+    hdp_motion.planning, which loads OMPL: only what plans imports that (the experts)."""
+    script = ('import json, sys; import hdp_sim_bridge.world; '
+              'print(json.dumps(sorted(m for m in ("ompl", "hdp_motion.planning") if m in sys.modules)))')
+    result = subprocess.run([sys.executable, '-c', script], text=True, capture_output=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines()[-1] == '[]'

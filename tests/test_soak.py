@@ -10,6 +10,8 @@ import pytest
 
 from hdp_bringup import soak
 
+pytestmark = pytest.mark.dds
+
 
 def test_one_fault_in_every_n_episodes_in_turn():
     schedule = [soak.fault_of(i, 10) for i in range(80)]
@@ -31,7 +33,7 @@ def test_rss_is_read_from_proc_and_growth_is_relative(tmp_path):
 
 def test_bad_arguments_exit_2_before_anything_starts(tmp_path, ros_domain):
     for args in (('--tasks', 'make_tea'), ('--episodes', '0'), ('--fault-every', '0'), ('-p', 'nobody:x:=1')):
-        proc = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'bench', 'soak', '--out',
+        proc = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', 'bench', 'soak', '--out',
                                str(tmp_path / 'out'), *args], capture_output=True, text=True, timeout=60,
                               env=dict(os.environ, ROS_DOMAIN_ID=str(ros_domain)))
         assert proc.returncode == 2 and proc.stderr.startswith('hdp bench soak: '), (args, proc.stderr)
@@ -41,7 +43,7 @@ def test_bad_arguments_exit_2_before_anything_starts(tmp_path, ros_domain):
 @pytest.mark.timeout(900)
 def test_a_short_soak_reports_every_fault_with_its_cause(tmp_path, ros_domain):
     out = tmp_path / 'soak'
-    proc = subprocess.run([sys.executable, '-m', 'hdp_msgs_py.cli.main', 'bench', 'soak', '--episodes', '4',
+    proc = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', 'bench', 'soak', '--episodes', '4',
                            '--fault-every', '1', '--tasks', 'reach_target', '--out', str(out),
                            '-p', 'sim_bridge_node:camera_width:=128', '-p', 'sim_bridge_node:camera_height:=96'],
                           capture_output=True, text=True, timeout=840,

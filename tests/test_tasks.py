@@ -11,6 +11,8 @@ from hdp_sim_bridge.experts import reachable_scene, run_expert
 from hdp_sim_bridge.tasks import TASKS, make_task
 from hdp_sim_bridge.world import PandaWorld
 
+pytestmark = pytest.mark.sim
+
 # The paper's other five tasks, added after the first six.
 NEW_TASKS = ('take_lid_off_saucepan', 'open_grill', 'open_microwave', 'open_oven', 'put_knife_on_chopping_board')
 

@@ -8,6 +8,8 @@ from hdp_msgs_py import conversions
 from hdp_msgs_py.msg import Time
 from hdp_sim_bridge.trajectory_follower import accept
 
+pytestmark = pytest.mark.unit
+
 JOINTS = list(panda.ARM_JOINTS)
 
 

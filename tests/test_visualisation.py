@@ -7,6 +7,8 @@ from hdp_msgs_py import conversions
 from hdp_msgs_py.msg import JointState, Marker, Time
 from hdp_planner import visualisation
 
+pytestmark = pytest.mark.unit
+
 
 def test_the_nbp_frame_and_arrow_follow_the_pose_and_the_gripper_goal():
     stamp = Time(sec=12, nanosec=5)

@@ -13,9 +13,14 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.unit
+
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / 'src'
-PACKAGES = ('hdp_motion', 'hdp_msgs_py', 'hdp_planner', 'hdp_controller', 'hdp_sim_bridge', 'hdp_eval', 'hdp_bringup')
+PACKAGES = ('hdp_motion', 'hdp_msgs_py', 'hdp_ros', 'hdp_data', 'hdp_learning', 'hdp_tools', 'hdp_planner',
+            'hdp_controller', 'hdp_sim_bridge', 'hdp_eval', 'hdp_bringup')
+# Packages that need no ROS: the robot model, recorded data, the learning rules.
+ROS_FREE = ('hdp_motion', 'hdp_data', 'hdp_learning')
 # package -> the node executable `ros2 run <package> <executable>` starts
 NODES = {
     'hdp_planner': 'planner_node',
@@ -59,7 +64,7 @@ def test_package_metadata_agrees(pkg):
     assert root.findtext('license') == 'Apache-2.0'
     assert root.findtext('maintainer') == 'HDP-ROS developers'
     exec_depends = {e.text for e in root.findall('exec_depend')}
-    if pkg != 'hdp_motion':        # the robot model alone needs no ROS
+    if pkg not in ROS_FREE:
         assert 'rclpy' in exec_depends
     assert 'python3-pytest' in {e.text for e in root.findall('test_depend')}
 
@@ -114,7 +119,9 @@ def test_colcon_build_installs_ros_layout(tmp_path):
         assert os.access(script, os.X_OK), script
         site = next((install / pkg / 'lib').glob('python3*/site-packages'))
         assert (site / pkg / f'{exe}.py').is_file()
-    assert os.access(install / 'hdp_msgs_py' / 'lib' / 'hdp_msgs_py' / 'hdp', os.X_OK)
+    assert os.access(install / 'hdp_tools' / 'lib' / 'hdp_tools' / 'hdp', os.X_OK)
+    site = next((install / 'hdp_ros' / 'lib').glob('python3*/site-packages'))
+    assert (site / 'hdp_ros' / 'config' / 'fastdds_localhost.xml').is_file()     # what ros.init() applies
 
     bringup_share = install / 'hdp_bringup' / 'share' / 'hdp_bringup'
     for launch in ('hdp_graph.launch.py', 'hdp_real_fr3.launch.py'):

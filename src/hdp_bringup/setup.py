@@ -19,6 +19,8 @@ setup(
         'hdp_controller',
         'hdp_motion',
         'hdp_msgs_py',
+        'hdp_data',
+        'hdp_ros',
         'hdp_planner',
         'hdp_sim_bridge',
         'numpy',

@@ -15,6 +15,8 @@ setup(
         'hdp_controller',
         'hdp_motion',
         'hdp_msgs_py',
+        'hdp_data',
+        'hdp_learning',
         'hdp_planner',
         'hdp_sim_bridge',
         'numpy',

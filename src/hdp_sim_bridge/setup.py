@@ -14,6 +14,8 @@ setup(
         'setuptools',
         'hdp_motion',
         'hdp_msgs_py',
+        'hdp_data',
+        'hdp_ros',
         'numpy',
         'pyyaml',
         'tqdm',

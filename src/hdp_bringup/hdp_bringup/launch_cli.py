@@ -20,11 +20,12 @@ import threading
 import time
 from pathlib import Path
 
+from hdp_controller.methods import METHODS   # controller_node's low levels (imports no torch)
+
 # node name -> package; the executable is the node's name (hdp_graph.launch.py reads this too).
 NODES = {'sim_bridge_node': 'hdp_sim_bridge', 'planner_node': 'hdp_planner', 'controller_node': 'hdp_controller'}
 STOP_GRACE_S = 15.0            # for a node to exit after SIGINT, before SIGTERM and then SIGKILL
 ON_EXIT = ('keep', 'shutdown', 'respawn')    # what a node's exit does to the graph
-METHODS = ('rkd', 'planner', 'pose_ik', 'joint')     # controller_node's low levels
 
 
 def default_params_file() -> Path:
@@ -57,7 +58,7 @@ def configure(parser) -> None:
 def launch_overrides(task=None, seed=None, method=None) -> dict[str, dict]:
     """node -> the parameters the launch arguments set (hdp_graph.launch.py's task, seed, method);
     ValueError for an unknown task or method or a seed that is not a whole number >= 0."""
-    from hdp_msgs_py.instructions import TASKS
+    from hdp_data.instructions import TASKS
     overrides: dict[str, dict] = {}
     if task is not None:
         if task not in TASKS:

@@ -126,7 +126,7 @@ def configure(parser) -> None:
 
 
 def run(args) -> int:
-    from hdp_msgs_py.instructions import TASKS       # the task names, without loading the simulator
+    from hdp_data.instructions import TASKS       # the task names, without loading the simulator
     tasks = [t.strip() for t in args.tasks.split(',') if t.strip()]
     problem = None
     if not tasks or any(t not in TASKS for t in tasks):

@@ -17,12 +17,12 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from hdp_bringup.launch_cli import NODES, launch_overrides
+from hdp_bringup.launch_cli import METHODS, NODES, launch_overrides
 
 ARGUMENTS = {
     'task': ('', 'the simulated task (default: the params file\'s)'),
     'seed': ('', 'the scene seed (default: the params file\'s)'),
-    'method': ('', 'the low level: rkd | planner | pose_ik | joint (default: the params file\'s)'),
+    'method': ('', f'the low level: {" | ".join(METHODS)} (default: the params file\'s)'),
     'params_file': (os.path.join(get_package_share_directory('hdp_bringup'), 'config', 'hdp_graph.yaml'),
                     'node parameters'),
 }

@@ -20,9 +20,9 @@ from control_msgs.msg import JointTolerance
 from rclpy.action import ActionClient
 
 from hdp_msgs_py import topics
-from hdp_msgs_py.conversions import seconds_to_duration
+from hdp_msgs_py.conversions import seconds_to_duration, time_to_ns
 
-from .controller_logic import GOAL_TOLERANCE, stamp_ns
+from .execution import GOAL_TOLERANCE
 
 GOAL_TIME_TOLERANCE_S = 1.0        # after the trajectory's end, for the arm to come within tolerance
 GRIPPER_MAX_EFFORT = 20.0          # N, franka_gripper's grasp force
@@ -50,7 +50,7 @@ class ArmAction:
 
     def segment_ended(self, result_header) -> None:
         """A segment result went out: if it was not 'done', the segment's goal is cancelled."""
-        if self._active is None or stamp_ns(self._active[0]) != stamp_ns(result_header.stamp):
+        if self._active is None or time_to_ns(self._active[0]) != time_to_ns(result_header.stamp):
             return
         if result_header.frame_id == topics.SEGMENT_DONE:
             self._active = None
@@ -67,7 +67,7 @@ class ArmAction:
         if not handle.accepted:
             self._send(self._arm_failed(stamp, 'the arm controller rejected the trajectory'))
             return
-        if self._active is not None and stamp_ns(self._active[0]) == stamp_ns(stamp):
+        if self._active is not None and time_to_ns(self._active[0]) == time_to_ns(stamp):
             self._active = (stamp, handle)
         else:                                   # the segment ended while the goal was on its way
             handle.cancel_goal_async()
@@ -91,7 +91,7 @@ class GripperAction:
         self._client = ActionClient(node, GripperCommand, name)
 
     def send(self, finger_trajectory) -> None:
-        """The finger JointTrajectory controller_logic makes -> a goal of the same width."""
+        """The finger JointTrajectory the controller logic makes -> a goal of the same width."""
         finger = float(finger_trajectory.points[-1].positions[0])           # m per finger = half the width
         if not self._client.server_is_ready():
             self._node.get_logger().error(f'no GripperCommand server on {self._name}')

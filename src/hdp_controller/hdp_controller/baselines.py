@@ -19,7 +19,7 @@ import numpy as np
 
 from hdp_motion import panda, planning
 from hdp_motion.rotations import quat_angle
-from hdp_msgs_py import workspace
+from hdp_data import workspace
 
 from .low_level import PlanResult, Scene, SegmentRequest, start_episode
 

@@ -3,7 +3,7 @@
     {'format': FORMAT, 'version': VERSION, 'config': RKDConfig as a dict, 'model': EMA state dict,
      'training': {...}, 'training_seeds': {task: [seed, ...]}}
 
-Written and read by hdp_msgs_py.checkpoints (atomic writes, size cap, weights-only
+Written and read by hdp_learning.checkpoints (atomic writes, size cap, weights-only
 loading, one CheckpointError); this module adds the RK-Diffuser's fields and model.
 Training also writes ``OUT.resume`` (RESUME_FORMAT) under the same rules.
 """
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from hdp_msgs_py import checkpoints
-from hdp_msgs_py.checkpoints import CheckpointError
+from hdp_learning import checkpoints
+from hdp_learning.checkpoints import CheckpointError
 
 from .rk_diffuser import RKDConfig, RKDiffuser
 

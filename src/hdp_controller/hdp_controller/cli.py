@@ -13,7 +13,7 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
                         'preprocessed segments file (DATA/.cache/rkd_segments_*.npz) to train where the episodes are not')
     parser.add_argument('--out', required=True, help='checkpoint to write (OUT.resume holds the training state)')
     parser.add_argument('--config', help='YAML file with "model:" (RKDConfig) and/or "train:" (TrainConfig) '
-                        'sections (hdp_msgs_py.config; unknown keys are refused)')
+                        'sections (hdp_learning.config; unknown keys are refused)')
     parser.add_argument('--steps', type=int, help='training steps (overrides the config)')
     parser.add_argument('--batch-size', type=int, help='batch size (overrides the config)')
     parser.add_argument('--seed', type=int, help='seed (overrides the config)')
@@ -32,8 +32,8 @@ def configure_train(parser: argparse.ArgumentParser) -> None:
 def _train(args) -> int:
     import torch
 
-    from hdp_msgs_py.config import ConfigError, as_dict, load_sections
-    from hdp_msgs_py.distributed import torch_device
+    from hdp_learning.config import ConfigError, as_dict, load_sections
+    from hdp_learning.distributed import torch_device
 
     from .rk_diffuser import RKDConfig      # torch: only once a command runs
     from .train import TrainConfig, train

@@ -1,12 +1,12 @@
 """controller_node: each next-best pose -> a JointTrajectory for the arm, then the gripper, then a result.
 
-The logic is controller_logic.SegmentController; this node wires it to topics and
+The logic is segment_controller.SegmentController; this node wires it to topics and
 parameters. A 20 Hz timer advances the segment. Planning runs inside that timer
 callback: the executor is single-threaded, so messages wait in their readers meanwhile
 (the latest joint state and camera frames are all the node keeps), and the arm is at rest
 while a segment is planned, so there is nothing to react to until the trajectory is out.
 A second timer runs on the steady clock: under use_sim_time the first one stops with the
-simulator, and the watchdog (hdp_msgs_py.liveness) then fails the segment, naming the cause.
+simulator, and the watchdog (hdp_ros.liveness) then fails the segment, naming the cause.
 """
 
 
@@ -15,13 +15,17 @@ import time
 from rclpy.clock import Clock, ClockType
 
 from hdp_motion import panda
-from hdp_msgs_py import ros, topics
-from hdp_msgs_py.liveness import Liveness
+from hdp_msgs_py import topics
+from hdp_ros import ros
+from hdp_ros.liveness import Liveness
 from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
+from hdp_msgs_py.outcome import StatusLine
 
 from .action_clients import ArmAction, GripperAction
-from .controller_logic import PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, SegmentController
-from .policy import LEARNED, METHODS, load_policy
+from .methods import LEARNED, METHODS
+from .policy import load_policy
+from .segment_controller import ArmCommand, FingerCommand, SegmentController, SegmentResult
+from .segment_planning import PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M
 from .trajectory import VELOCITY_SCALE
 
 _STEP_S = 0.05
@@ -79,23 +83,21 @@ class ControllerNode(ros.Node):
                                  device=p['device'])
         except ValueError as err:          # CheckpointError: missing, damaged or not ours; a device not here
             raise ros.StartupError(f"cannot load the {p['method']} policy: {err}") from None
-        prefix = p['joint_prefix']
+        arm_joints = panda.joint_names(p['joint_prefix'])
         self.logic = SegmentController(
             policy, needs_points=p['method'] in LEARNED, velocity_scale=p['velocity_scale'],
-            segment_timeout_s=p['segment_timeout_s'], arm_joints=panda.joint_names(prefix),
-            finger_joints=panda.finger_joint_names(prefix),
+            segment_timeout_s=p['segment_timeout_s'], arm_joints=arm_joints,
+            finger_joints=panda.finger_joint_names(p['joint_prefix']),
             reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits,
             carry_on_unsettled=p['unsettled'] == 'carry_on', plan_attempts=p['plan_attempts'])
 
         self.status = ros.Status(self)
-        self._outputs = {
-            'arm': self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS),
-            'gripper': self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS),
-            'result': self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS),
-        }
+        self._arm = self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS)
+        self._gripper = self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS)
+        self._result = self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS)
         # As real robots take commands: joint_trajectory_controller's and franka_gripper's actions.
         # (Parameters rather than remapping: rcl remaps action names only since 2024, rcl#1170.)
-        self.arm_action = (ArmAction(self, p['arm_action'], self.logic.arm_joints, self._send, self.logic.arm_failed)
+        self.arm_action = (ArmAction(self, p['arm_action'], arm_joints, self._send, self.logic.arm_failed)
                            if p['arm_interface'] == 'action' else None)
         self.gripper_action = (GripperAction(self, p['gripper_action']) if p['gripper_interface'] == 'action'
                                else None)
@@ -107,7 +109,7 @@ class ControllerNode(ros.Node):
         self.create_subscription(Image, topics.depth_image(_CAMERA),
                                  self.logic.on_depth, topics.SENSOR_QOS)
         self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
-                                 lambda m: setattr(self.logic, 'info', m), topics.SENSOR_QOS)
+                                 self.logic.on_camera_info, topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.TF_STATIC_QOS)
         self.create_timer(_STEP_S, self._step)
         # On the wall clock: under use_sim_time the timer above stops with the simulator.
@@ -137,17 +139,22 @@ class ControllerNode(ros.Node):
         self._send(self.logic.on_nbp(msg, self._now()))
 
     def _send(self, outputs):
-        for kind, msg in outputs:
-            if kind in ('info', 'error'):
-                self.status.say(kind, msg)
-            elif kind == 'arm' and self.arm_action is not None:
-                self.arm_action.send(self.logic.running[0], msg)
-            elif kind == 'gripper' and self.gripper_action is not None:
-                self.gripper_action.send(msg)
-            else:
-                if kind == 'result' and self.arm_action is not None:
-                    self.arm_action.segment_ended(msg)
-                self._outputs[kind].publish(msg)
+        for out in outputs:
+            match out:
+                case StatusLine():
+                    self.status.line(out)
+                case ArmCommand() if self.arm_action is not None:
+                    self.arm_action.send(out.stamp, out.trajectory)
+                case ArmCommand():
+                    self._arm.publish(out.trajectory)
+                case FingerCommand() if self.gripper_action is not None:
+                    self.gripper_action.send(out.trajectory)
+                case FingerCommand():
+                    self._gripper.publish(out.trajectory)
+                case SegmentResult():
+                    if self.arm_action is not None:
+                        self.arm_action.segment_ended(out.header)
+                    self._result.publish(out.header)
 
 
 def main(args=None):

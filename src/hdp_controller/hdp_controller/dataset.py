@@ -1,6 +1,6 @@
 """Episodes -> RK-Diffuser training samples (the paper's data preparation).
 
-Each successful episode is cut at its keyframes (hdp_msgs_py.keyframes, the
+Each successful episode is cut at its keyframes (hdp_data.keyframes, the
 rule and delta the high level uses too); every keyframe is relabelled as the
 goal of the segment that ends there. A segment's joint path is resampled to
 HORIZON waypoints evenly spaced by joint-space arc length (the rests and
@@ -41,8 +41,8 @@ from hdp_motion import panda
 from hdp_motion.kinematics import continuous_quats, fk_pose
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import transform_to_matrix
-from hdp_msgs_py.episodes import list_episodes, read_episode
-from hdp_msgs_py.keyframes import DEFAULT_STOPPING_DELTA, segments
+from hdp_data.episodes import list_episodes, read_episode
+from hdp_data.keyframes import DEFAULT_STOPPING_DELTA, segments
 
 from .low_level import HORIZON
 from .observation import points_from_messages

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdp_msgs_py import conversions, workspace
+from hdp_data import workspace
+from hdp_msgs_py import conversions
 
 N_POINTS = 1024
 # The training episodes were recorded at this resolution (`hdp collect --width 128 --height 96`).

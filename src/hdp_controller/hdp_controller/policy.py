@@ -17,15 +17,14 @@ import numpy as np
 import torch
 
 from hdp_motion import panda
-from hdp_msgs_py import checkpoints, distributed
+from hdp_learning import checkpoints, distributed
 
 from . import checkpoint
 from .low_level import PlanResult, Scene, SegmentRequest, nearest_of_draws, within
+from .methods import LEARNED, METHODS  # noqa: F401  (re-exported: controller_node reads them here)
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses, track
 from .rk_diffuser import RKDiffuser, as_batch
 
-METHODS = ('rkd', 'planner', 'planner_rrt', 'pose_ik', 'joint')
-LEARNED = ('rkd', 'pose_ik', 'joint')        # they read the checkpoint and the camera's points
 DEFAULT_CHECKPOINT_NAME = 'rk_diffuser_11tasks.pt'      # the eleven-task RK-Diffuser
 # The fast sampler: DDIM over FAST_STEPS of the 100 training steps, without
 # classifier-free guidance (half the network evaluations). The refinement is the

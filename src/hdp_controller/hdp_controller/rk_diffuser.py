@@ -30,7 +30,7 @@ from torch import nn
 
 from hdp_motion import panda
 from hdp_motion.kinematics import forward_kinematics, quat_to_matrix
-from hdp_msgs_py.workspace import WORKSPACE
+from hdp_data.workspace import WORKSPACE
 
 from .diffusion import TrajectoryDiffusion
 from .low_level import HORIZON

@@ -27,9 +27,9 @@ from diffusers.optimization import get_cosine_schedule_with_warmup
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
-from hdp_msgs_py import checkpoints, distributed
-from hdp_msgs_py.curves import CurveLog, curves_path
-from hdp_msgs_py.episodes import union_of_seeds
+from hdp_learning import checkpoints, distributed
+from hdp_learning.curves import CurveLog, curves_path
+from hdp_data.episodes import union_of_seeds
 
 from . import checkpoint
 from .dataset import SegmentDataset, augment, draw_augmentation, load_segments

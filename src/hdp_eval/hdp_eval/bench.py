@@ -3,8 +3,9 @@
 Both samplers run the same oracle episodes (low_level_eval.evaluate, seeds of
 the caller's choosing, never training seeds). The latency of a segment is
 what controller_node spends between a next-best pose and a publishable
-trajectory: sampling both diffusers, refinement, timing and message
-building (hdp_controller.trajectory.joint_trajectory). Torch runs on --threads CPU threads.
+trajectory: sampling both diffusers, refinement, timing, message building and
+the checks (hdp_controller.segment_planning.plan_segment, which the Table 2
+harness plans through). Torch runs on --threads CPU threads.
 """
 
 from __future__ import annotations
@@ -13,23 +14,6 @@ import json
 import time
 
 import numpy as np
-
-from hdp_controller.trajectory import joint_trajectory
-
-
-class ToJointTrajectory:
-    """A policy whose plan() also builds the JointTrajectory, so plan time is the full latency."""
-
-    def __init__(self, policy, name: str):
-        self.policy, self.name = policy, name
-        self.training_seeds = getattr(policy, 'training_seeds', None)
-
-    def plan(self, request, scene=None):
-        result = self.policy.plan(request, scene)
-        if result.ok:
-            joint_trajectory(request.q, result.joints)
-        return result
-
 
 def configure(parser) -> None:
     parser.description = ('Latency (p50/p95, NBP -> JointTrajectory) and success of RK-Diffuser with the '
@@ -49,7 +33,7 @@ def configure(parser) -> None:
 def run(args) -> int:
     import torch
     from hdp_controller.policy import FAST_STEPS, load_policy
-    from hdp_msgs_py.instructions import task_names
+    from hdp_data.instructions import task_names
 
     from .low_level_eval import evaluate
     try:
@@ -61,11 +45,9 @@ def run(args) -> int:
     torch.set_num_threads(args.threads)
     fast_steps = args.fast_steps or FAST_STEPS
     try:
-        methods = {'rkd_ddpm_100': ToJointTrajectory(load_policy('rkd', args.checkpoint, 'ddpm', device=args.device),
-                                                     'rkd_ddpm_100'),
-                   f'rkd_ddim_{fast_steps}': ToJointTrajectory(
-                       load_policy('rkd', args.checkpoint, 'ddim', steps=fast_steps, device=args.device),
-                       f'rkd_ddim_{fast_steps}')}
+        methods = {'rkd_ddpm_100': load_policy('rkd', args.checkpoint, 'ddpm', device=args.device),
+                   f'rkd_ddim_{fast_steps}': load_policy('rkd', args.checkpoint, 'ddim', steps=fast_steps,
+                                                         device=args.device)}
     except ValueError as err:
         raise SystemExit(f'hdp bench controller: {err}') from None
     started = time.monotonic()

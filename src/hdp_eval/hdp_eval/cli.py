@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-METHODS = ('rkd', 'planner', 'planner_rrt', 'pose_ik', 'joint')
+from hdp_controller.methods import METHODS
 
 
 def configure(parser) -> None:
@@ -40,7 +40,7 @@ def configure(parser) -> None:
 
 
 def _tasks(text: str) -> list[str]:
-    from hdp_msgs_py.instructions import task_names
+    from hdp_data.instructions import task_names
     try:
         return task_names(text)
     except ValueError as err:
@@ -59,7 +59,7 @@ def run(args) -> int:
     import torch
 
     from hdp_controller.policy import load_policy
-    from hdp_msgs_py import distributed
+    from hdp_learning import distributed
 
     from .low_level_eval import evaluate, markdown_table
     if args.episodes < 1 or args.workers < 1:
@@ -125,7 +125,7 @@ def run_plot(args) -> int:
 
 def configure_hierarchy(parser) -> None:
     """Closed-loop evaluation of the whole hierarchy in the sim, like the paper's Table 1. Under torchrun
-    (torchrun --nproc-per-node N -m hdp_msgs_py.cli.main eval hierarchy ...) each process runs every
+    (torchrun --nproc-per-node N -m hdp_tools.cli.main eval hierarchy ...) each process runs every
     N-th episode and rank 0 prints the table and writes the one result file."""
     parser.add_argument('--agents', default='hdp,nbp_planner,nbp_joint',
                         help='comma-separated: hdp (agent + RK-Diffuser), nbp_planner (agent + planner), '
@@ -136,7 +136,7 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
     parser.add_argument('--phrasings', default='seen',
                         help='comma-separated: seen (training phrasings), heldout (the held-out template), '
-                             'paraphrase (hdp_msgs_py.instructions paraphrases, never trained on), nonsense (one '
+                             'paraphrase (hdp_data.instructions paraphrases, never trained on), nonsense (one '
                              'word of the seen instruction kept, the rest made up); both = seen,heldout '
                              '(default seen)')
     parser.add_argument('--no-grounding', action='store_true',
@@ -157,8 +157,8 @@ def configure_hierarchy(parser) -> None:
                         help='RK-Diffuser sampler (default ddim)')
     parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
     parser.add_argument('--think-s', type=float, default=0.0, metavar='S',
-                        help='sim seconds the world runs between each observation and its segment\'s motion, '
-                             'as in the graph while the agent and the low level think (default 0: frozen)')
+                        help='sim seconds each trajectory is held back after it is planned while the world runs '
+                             'on, as in the graph while the nodes think (default 0)')
     parser.add_argument('--flat-diffusion-policy-checkpoint', type=Path,
                         help='the diffusion_policy row (default: models/flat_diffusion_policy.pt, $HDP_MODELS_DIR)')
     parser.add_argument('--flat-act-checkpoint', type=Path,
@@ -176,7 +176,7 @@ def configure_hierarchy(parser) -> None:
 
 
 def _reach_tolerance(text: str | None) -> tuple[float, float] | None:
-    from hdp_controller.controller_logic import REACH_TOLERANCE_DEG, REACH_TOLERANCE_M
+    from hdp_controller.segment_planning import REACH_TOLERANCE_DEG, REACH_TOLERANCE_M
     if text is None:
         return REACH_TOLERANCE_M, REACH_TOLERANCE_DEG
     if text == 'off':
@@ -192,19 +192,21 @@ def run_hierarchy(args) -> int:
     import torch
 
     from hdp_controller.policy import load_policy
+    from hdp_controller.segment_planning import PLAN_ATTEMPTS
     from hdp_planner.agent import NextBestPoseAgent
     from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, default_checkpoint
 
-    from hdp_msgs_py.checkpoints import default_path
+    from hdp_learning.checkpoints import default_path
 
+    from .closed_loop import GraphSettings
     from .hierarchy_eval import AGENTS, FLAT_AGENTS, PHRASINGS, evaluate, markdown_table
     agents, tasks = _names(args.agents, {**AGENTS, **FLAT_AGENTS}, 'agent'), _tasks(args.tasks)
     phrasings = _names('seen,heldout' if args.phrasings == 'both' else args.phrasings, PHRASINGS, 'phrasing')
     reach_tolerance = _reach_tolerance(args.reach_tolerance)
-    from hdp_controller.controller_logic import PLAN_ATTEMPTS
     plan_attempts = PLAN_ATTEMPTS if args.plan_attempts is None else args.plan_attempts
-    if args.flat_max_seconds <= 0 or args.think_s < 0 or plan_attempts < 1:
-        raise SystemExit('--flat-max-seconds must be > 0, --think-s >= 0 and --plan-attempts >= 1')
+    if args.flat_max_seconds <= 0 or args.think_s < 0 or plan_attempts < 1 or args.max_segments < 1:
+        raise SystemExit('--flat-max-seconds must be > 0, --think-s >= 0, --plan-attempts >= 1 and '
+                         '--max-segments >= 1')
     if args.threads:
         torch.set_num_threads(args.threads)
     hierarchical = [name for name in agents if name in AGENTS]
@@ -226,10 +228,10 @@ def run_hierarchy(args) -> int:
         raise SystemExit(f'hdp eval hierarchy: {err}') from None
     min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     try:
-        results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, args.max_segments,
-                           min_confidence=min_confidence, reach_tolerance=reach_tolerance, flat=flat,
-                           flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras,
-                           think_s=args.think_s, plan_attempts=plan_attempts)
+        settings = GraphSettings(max_segments=args.max_segments, min_confidence=min_confidence,
+                                 reach_tolerance=reach_tolerance, plan_attempts=plan_attempts, think_s=args.think_s)
+        results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, settings, flat=flat,
+                           flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras)
     except ValueError as err:
         print(f'hdp eval hierarchy: {err}', file=sys.stderr)
         return 1

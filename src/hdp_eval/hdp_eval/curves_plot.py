@@ -1,11 +1,11 @@
-"""`hdp plot curves`: a training curves file (hdp_msgs_py.curves) as a PNG, one panel per
+"""`hdp plot curves`: a training curves file (hdp_learning.curves) as a PNG, one panel per
 kind: losses (log scale), learning rate, and each validation metric."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from hdp_msgs_py.curves import read_curves
+from hdp_learning.curves import read_curves
 
 
 def panels(columns: list[str]) -> list[tuple[str, list[str]]]:

@@ -1,10 +1,11 @@
 """The closed-loop hierarchy in the sim: the paper's Table 1 setting.
 
-Per segment the agent re-observes (both cameras rendered, the arm state),
-predicts a next-best pose and gripper action; the low-level method plans a
-joint trajectory to it, which runs through the experts' execution path
-(low_level_eval), then the gripper acts. The episode ends on the
-task's success condition, a planning failure, or the segment budget.
+Each episode runs the graph's own logic in one process (closed_loop.InProcessGraph):
+planner_node's PlannerLoop observes both rendered cameras and the arm, predicts a next-best
+pose and gripper action; controller_node's SegmentController plans a joint trajectory to it,
+which the simulated robot follows as sim_bridge_node does, then the gripper acts. The episode
+ends with the planner's outcome for the instruction: success, a refusal, a failed segment or
+the segment budget, by the nodes' rules and with their parameters (closed_loop.GraphSettings).
 
 Agents (Table 1 rows):  hdp = agent + RK-Diffuser, nbp_planner = agent +
 planner (PerAct + Planner), nbp_joint = agent + joint diffusion (PerAct +
@@ -30,18 +31,20 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from hdp_controller.controller_logic import plan_within_reach, reach_error
 from hdp_controller.low_level import start_episode
-from hdp_controller.observation import CAMERA_SIZE, N_POINTS
-from hdp_msgs_py import distributed, instructions
+from hdp_controller.methods import LEARNED
+from hdp_controller.observation import CAMERA_SIZE
+from hdp_data import instructions
+from hdp_learning import distributed
 from hdp_planner import language
 from hdp_sim_bridge import experts
+from hdp_sim_bridge.bridge import SimBridge
 from hdp_sim_bridge.cameras import default_cameras
 from hdp_sim_bridge.tasks import TASKS
 from hdp_sim_bridge.world import TIME_STEP, PandaWorld
 
-from .low_level_eval import check_seed_hygiene, execute_segment, world_scene
-from .observation import front_points, segment_request
+from .closed_loop import GraphSettings, InProcessGraph
+from .low_level_eval import check_seed_hygiene, world_scene
 
 AGENTS = {'hdp': 'rkd', 'nbp_planner': 'planner', 'nbp_joint': 'joint'}
 # The flat rows: name -> the hdp_planner.flat policy (and its checkpoint models/flat_<name>.pt).
@@ -57,7 +60,6 @@ PHRASINGS = (*instructions.EVALUATION_PHRASINGS, 'nonsense')
 # Made-up words for 'nonsense' instructions: one word of the task's own instruction is kept, so
 # the planner's vocabulary check lets them through and only the agent's confidence can refuse.
 PSEUDO_WORDS = ('blick', 'zorf', 'quib', 'flom', 'trask', 'wunt', 'glimp', 'sprov', 'dax', 'vurl')
-MAX_SEGMENTS = 8
 
 
 @dataclasses.dataclass
@@ -69,6 +71,7 @@ class HierarchyRecord:
     instruction: str
     success: bool = False
     ik_error: bool = False
+    outcome: str | None = None           # the planner's Outcome result (hierarchical rows)
     failure: str | None = None
     segments: int = 0
     confidences: list = dataclasses.field(default_factory=list)    # the agent's, per prediction
@@ -76,6 +79,8 @@ class HierarchyRecord:
     predict_times: list = dataclasses.field(default_factory=list)
     plan_times: list = dataclasses.field(default_factory=list)       # s, all draws of a plan together
     plan_draws: list = dataclasses.field(default_factory=list)       # draws per plan (plan_attempts)
+    sim_seconds: float = 0.0
+    status: list = dataclasses.field(default_factory=list)           # the nodes' status lines, in order
 
 
 @dataclasses.dataclass
@@ -86,7 +91,6 @@ class FlatRecord(HierarchyRecord):
     control_steps: int = 0
     queries: int = 0
     camera_frames: int = 0
-    sim_seconds: float = 0.0
     joint_travel_rad: float = 0.0
 
 
@@ -108,67 +112,39 @@ def nonsense(text: str, rng: np.random.Generator) -> str:
     return ' '.join(w if i == keep else str(rng.choice(PSEUDO_WORDS)) for i, w in enumerate(tokens))
 
 
-def think(world, task, seconds: float) -> None:
-    """Let the world run ``seconds`` with the arm holding its last command, as it runs in the graph
-    while the agent and the low level think: what they saw is that much older when the arm moves."""
-    for _ in range(round(seconds / TIME_STEP)):
-        world.step()
-        task.on_step(world)
-
-
 def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing: str = 'seen',
-                max_segments: int = MAX_SEGMENTS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None,
-                min_confidence: float = 0.0, reach_tolerance: tuple[float, float] | None = None,
-                think_s: float = 0.0, plan_attempts: int = 1) -> HierarchyRecord:
-    """One closed-loop episode, refusing what planner_node and controller_node refuse.
+                settings: GraphSettings | None = None, camera_size=CAMERA_SIZE,
+                world: PandaWorld | None = None) -> HierarchyRecord:
+    """One closed-loop episode through planner_node's and controller_node's own logic
+    (closed_loop.InProcessGraph): whatever they refuse, time out or end is what the record says.
 
-    min_confidence: a first prediction below it refuses the instruction (failure 'refused: low
-    confidence'). reach_tolerance: (m, deg); a plan ending farther from its NBP after
-    ``plan_attempts`` draws is refused (failure 'refused: NBP not reachable'), as controller_node's
-    reach_tolerance_m/deg and plan_attempts do (controller_logic.plan_within_reach).
-    Either way nothing moves. think_s: sim seconds between each observation and its segment's
-    motion (think); 0 freezes the world meanwhile.
-    """
+    settings: the nodes' parameters (the graph's by default). The record's outcome and failure
+    are the planner's Outcome result and reason (failure None on success)."""
+    settings = settings or GraphSettings()
     if world is None:
         with PandaWorld() as own:
-            return run_episode(name, agent, low_level, task_name, seed, phrasing, max_segments, camera_size, own,
-                               min_confidence, reach_tolerance, think_s, plan_attempts)
-    task, _, variation = experts.reachable_scene(world, task_name, seed)
+            return run_episode(name, agent, low_level, task_name, seed, phrasing, settings, camera_size, own)
+    bridge = SimBridge(*camera_size, world=world)
+    episode = bridge.reset(task_name, seed)
     start_episode(low_level, seed)
-    record = HierarchyRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
-    cameras = default_cameras(*camera_size)
-    rng = np.random.default_rng(seed)
-    for _ in range(max_segments):
-        frames = {cam: camera.render(world.client) for cam, camera in cameras.items()}
-        started = time.perf_counter()
-        nbp = agent.predict(frames, {c: cam.intrinsics for c, cam in cameras.items()},
-                            {c: cam.camera_to_world for c, cam in cameras.items()}, record.instruction,
-                            (world.joint_positions(), world.gripper_commanded_open))
-        record.predict_times.append(time.perf_counter() - started)
-        record.confidences.append(round(float(nbp.confidence), 4))
-        if record.segments == 0 and nbp.confidence < min_confidence:
-            record.failure = 'refused: low confidence'
-            return record
-        request = segment_request(world, np.r_[nbp.xyz, nbp.quat], nbp.gripper_open,
-                                  front_points(world, cameras['front'], N_POINTS, rng))
-        started = time.perf_counter()
-        plan, draws = plan_within_reach(low_level, request, reach_tolerance, plan_attempts, world_scene(world, task))
-        record.plan_times.append(time.perf_counter() - started)
-        record.plan_draws.append(draws)
-        record.segments += 1
-        if not plan.ok:
-            record.failure, record.ik_error = plan.failure or 'no_plan', bool(plan.ik_error)
-            return record
-        record.reach_errors.append(tuple(round(e, 4) for e in reach_error(plan.joints[-1], request.goal_pose)))
-        if reach_tolerance is not None and any(e > t for e, t in zip(record.reach_errors[-1], reach_tolerance)):
-            record.failure = 'refused: NBP not reachable'
-            return record
-        think(world, task, think_s)
-        execute_segment(world, task, plan.joints, request.gripper_open, nbp.gripper_open)
-        if task.success(world):
-            record.success = True
-            return record
-    record.failure = 'segment budget spent'
+    record = HierarchyRecord(name, task_name, seed, phrasing,
+                             episode_instruction(task_name, seed, episode['variation'], phrasing))
+    graph = InProcessGraph(bridge, agent, low_level, needs_points=low_level.name in LEARNED, settings=settings,
+                           scene=lambda: world_scene(world, bridge.task))
+    budget_s = settings.max_segments * (settings.result_timeout_s + settings.camera_timeout_s) + 60.0
+    log = graph.run(record.instruction, max_sim_s=budget_s)
+    record.outcome, record.success = log.outcome.result, log.outcome.result == 'succeeded'
+    record.failure = None if record.success else log.outcome.reason
+    record.segments = log.outcome.segments
+    record.confidences = [round(p.confidence, 4) for p in log.predictions]
+    record.predict_times = [p.seconds for p in log.predictions]
+    record.plan_times = [plan.seconds for plan in log.plans]
+    record.plan_draws = [plan.draws for plan in log.plans]
+    record.reach_errors = [tuple(round(e, 4) for e in plan.reach_error) for plan in log.plans
+                           if plan.reach_error is not None]
+    record.ik_error = bool(log.failed_plan is not None and log.failed_plan.ik_error)
+    record.sim_seconds = log.sim_seconds
+    record.status = log.status
     return record
 
 
@@ -236,15 +212,14 @@ def run_flat_episode(name: str, policy, task_name: str, seed: int, phrasing: str
 
 
 def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phrasings=('seen',),
-             max_segments: int = MAX_SEGMENTS, progress: bool = True, min_confidence: float = 0.0,
-             reach_tolerance: tuple[float, float] | None = None, flat: dict | None = None,
-             flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str | None = None,
-             think_s: float = 0.0, plan_attempts: int = 1) -> dict:
+             settings: GraphSettings | None = None, progress: bool = True, flat: dict | None = None,
+             flat_max_seconds: float = FLAT_MAX_SECONDS, flat_cameras: str | None = None) -> dict:
     """Every (agent row, task, seed, phrasing) once; JSON-able results with per-task rates.
 
+    settings: the nodes' parameters for the hierarchical rows (the graph's by default).
     flat: name -> FlatPolicy, rows run by run_flat_episode (``agent`` may be None when there are
     no hierarchical rows)."""
-    flat = flat or {}
+    flat, settings = flat or {}, settings or GraphSettings()
     unknown = [t for t in tasks if t not in TASKS]
     if unknown or not tasks:
         raise ValueError(f'unknown task(s) {unknown}; tasks: {", ".join(TASKS)}')
@@ -273,16 +248,13 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
                 records.append(run_flat_episode(name, flat[name], task, seed, phrasing, flat_max_seconds,
                                                 world=world, cameras_when=cameras_when[name]))
                 continue
-            records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, max_segments,
-                                       world=world, min_confidence=min_confidence, reach_tolerance=reach_tolerance,
-                                       think_s=think_s, plan_attempts=plan_attempts))
+            records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, settings, world=world))
     if world_size > 1:
         order = {job: i for i, job in enumerate(jobs)}
         records = sorted((r for part in distributed.gather(records, world_size) for r in part),
                          key=lambda r: order[(r.agent, r.task, r.seed, r.phrasing)])
     results = {'tasks': list(tasks), 'seeds': [seeds[0], seeds[-1]], 'phrasings': list(phrasings),
-               'min_confidence': min_confidence, 'reach_tolerance': reach_tolerance, 'plan_attempts': plan_attempts,
-               'think_s': think_s,
+               'graph': dataclasses.asdict(settings),
                # The instruction grounding's min_similarity; None: instructions given as they are.
                'grounding': getattr(getattr(agent, 'grounding', None), 'min_similarity', None),
                'processes': world_size,

@@ -4,9 +4,11 @@ For each (task, seed) the scripted expert runs once on that seed's scene;
 its keyframes, found by the same rule and at the same 120 Hz joint-state
 rate as the training data, give the oracle next-best poses (NBPs). A method
 then starts from the same scene and, for each NBP in turn, observes (front
-camera points, arm state), plans a joint trajectory to the NBP, which runs
-through the experts' own execution path, and applies the NBP's gripper
-action. An episode succeeds when the task's success condition holds after a
+camera points, arm state), plans a joint trajectory to the NBP through
+controller_node's own planning (segment_planning.plan_segment: the same
+request, timing and joint-limit checks; one draw and no reach tolerance, the
+paper's setting), which runs through the experts' own execution path, and
+applies the NBP's gripper action. An episode succeeds when the task's success condition holds after a
 segment (RLBench ends an episode at success); a plan that fails ends it.
 Seeds where the expert itself fails are skipped, not counted against a method.
 """
@@ -22,12 +24,15 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from hdp_controller.controller_logic import reach_error
+from hdp_controller.inputs import SegmentRefused
 from hdp_controller.low_level import Scene, start_episode
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS
+from hdp_controller.segment_planning import plan_segment
+from hdp_motion import panda
 from hdp_motion.rotations import quat_angle
-from hdp_msgs_py import distributed
-from hdp_msgs_py.keyframes import discover_keyframes
+from hdp_learning import distributed
+from hdp_msgs_py import conversions
+from hdp_data.keyframes import discover_keyframes
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.collect import JOINT_STATE_EVERY
 from hdp_sim_bridge.tasks import TASKS
@@ -77,7 +82,7 @@ class EpisodeRecord:
 
 def _commanded_open(stamps: np.ndarray, commands: list) -> np.ndarray:
     """(T,) bool: the last gripper command at or before each frame's step (open before any),
-    as hdp_msgs_py.episodes reads a bag's gripper commands."""
+    as hdp_data.episodes reads a bag's gripper commands."""
     gripper_open = np.ones(len(stamps), dtype=bool)       # the world resets with it open
     for step, is_open in commands:
         gripper_open[stamps >= step] = is_open
@@ -159,32 +164,39 @@ def execute_segment(world, task, joints, was_open: bool, goal_open: bool,
 
 
 def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points: int = N_POINTS,
-                world: PandaWorld | None = None, config: experts.ExpertConfig | None = None) -> EpisodeRecord:
+                world: PandaWorld | None = None, config: experts.ExpertConfig | None = None,
+                name: str | None = None) -> EpisodeRecord:
     """Replay ``oracle``'s NBPs with ``policy`` on the same scene; see the module docstring.
 
     camera_size: (width, height) of the front camera, the training data's by default.
     config: execution settings (velocity scale), the experts' by default.
+    name: the record's method (default policy.name), when one policy runs under several names.
     """
     if world is None:
         with PandaWorld() as own:
-            return run_episode(policy, oracle, camera_size, n_points, own, config)
+            return run_episode(policy, oracle, camera_size, n_points, own, config, name)
     config = config or experts.ExpertConfig()
     task, _, _ = experts.reachable_scene(world, oracle.task, oracle.seed)
     start_episode(policy, oracle.seed)
     camera = front_camera(*camera_size)
     rng = np.random.default_rng(oracle.seed)      # point subsampling: the same for every method
-    record = EpisodeRecord(policy.name, oracle.task, oracle.seed)
+    record = EpisodeRecord(name or policy.name, oracle.task, oracle.seed)
     for goal_pose, goal_open in oracle.nbps:
         request = segment_request(world, goal_pose, goal_open, front_points(world, camera, n_points, rng))
-        start = time.perf_counter()
-        plan = policy.plan(request, world_scene(world, task))
-        record.plan_times.append(time.perf_counter() - start)
-        if not plan.ok:
-            record.failure, record.ik_error = plan.failure or 'no_plan', bool(plan.ik_error)
+        try:
+            trajectory, report = plan_segment(policy, request, panda.ARM_JOINTS, config.velocity_scale,
+                                              scene=world_scene(world, task))
+        except SegmentRefused as err:
+            if err.report is not None:
+                record.plan_times.append(err.report.seconds)
+            record.failure = err.report.failure if err.report and err.report.failure else str(err)
+            record.ik_error = bool(err.report and err.report.ik_error)
             return record
-        record.reach_errors.append([round(e, 4) for e in reach_error(plan.joints[-1], goal_pose)])
-        record.plan_stats.append({k: v for k, v in plan.extras.items() if isinstance(v, (bool, int, float))})
-        path = execute_segment(world, task, plan.joints, request.gripper_open, goal_open, config)
+        record.plan_times.append(report.seconds)
+        record.reach_errors.append([round(e, 4) for e in report.reach_error])
+        record.plan_stats.append(report.stats)
+        joints = conversions.parse_joint_trajectory(trajectory)[1][1:]     # the timed path, after the start
+        path = execute_segment(world, task, joints, request.gripper_open, goal_open, config)
         record.joint_paths.append(path.round(5).tolist())
         record.grasps_lost = world.grasp_lost_count
         if task.success(world):
@@ -224,7 +236,7 @@ def _oracle_job(job, methods, world) -> OracleEpisode:
 
 def _episode_job(job, methods, world) -> EpisodeRecord:
     name, oracle, camera_size, n_points = job
-    return run_episode(methods[name], oracle, camera_size, n_points, world)
+    return run_episode(methods[name], oracle, camera_size, n_points, world, name=name)
 
 
 _worker: dict = {}       # per worker process: the methods and a world kept between episodes

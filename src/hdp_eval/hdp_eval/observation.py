@@ -1,12 +1,15 @@
 """What a low-level policy observes, taken from the simulator: a rendered front camera's points
-and a PandaWorld's arm state (controller_node takes the same from ROS messages)."""
+and a PandaWorld's arm state, made into a request as controller_node makes it from messages."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from hdp_controller.inputs import ArmState
 from hdp_controller.low_level import SegmentRequest
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS, workspace_points
+from hdp_controller.segment_planning import segment_request as planning_request
+from hdp_motion import panda
 from hdp_msgs_py import conversions
 from hdp_sim_bridge.cameras import default_cameras
 
@@ -26,15 +29,9 @@ def front_points(world_or_client, camera, n_points: int = N_POINTS,
 
 
 def segment_request(world, goal_pose, goal_gripper_open: bool, points) -> SegmentRequest:
-    """A SegmentRequest from a PandaWorld's current state towards ``goal_pose`` (7,) xyz + quat xyzw."""
-    xyz, quat = world.ee_pose()
-    return SegmentRequest(
-        q=world.joint_positions(), qd=world.joint_velocities(),
-        gripper_width=world.gripper_width(),
-        # The commanded state, not the measured width: fingers closed on a handle are not
-        # fully shut, and the keyframe rule (and so the training data) uses the command.
-        gripper_open=world.gripper_commanded_open,
-        start_pose=np.concatenate([xyz, quat]),
-        goal_pose=np.asarray(goal_pose, dtype=float).reshape(7),
-        points=np.asarray(points, dtype=np.float32),
-        goal_gripper_open=bool(goal_gripper_open))
+    """A SegmentRequest from a PandaWorld's current state towards ``goal_pose`` (7,) xyz + quat xyzw,
+    made as controller_node makes it from /joint_states (segment_planning.segment_request: the
+    gripper's state read from the fingers, the start pose by FK)."""
+    state = ArmState(world.joint_positions(), world.joint_velocities(), world.gripper_width())
+    return planning_request(state, panda.reads_open(state.gripper_width), goal_pose, goal_gripper_open,
+                            np.asarray(points, dtype=np.float32))

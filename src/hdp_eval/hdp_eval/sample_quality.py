@@ -54,7 +54,7 @@ def run(args) -> int:
     from hdp_controller import checkpoint
     from hdp_controller.dataset import load_segments
     from hdp_controller.policy import FAST_GUIDANCE, FAST_STEPS, default_checkpoint
-    from hdp_msgs_py import distributed
+    from hdp_learning import distributed
 
     if args.batch < 1 or args.refine_steps < 0:
         raise SystemExit('--batch must be >= 1 and --refine-steps >= 0')

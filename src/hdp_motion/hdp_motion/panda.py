@@ -15,6 +15,11 @@ EE_LINK = 'panda_grasptarget'
 
 ARM_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 FINGER_JOINTS = ('panda_finger_joint1', 'panda_finger_joint2')
+# The same in pybullet_data's franka_panda/panda.urdf, as PyBullet numbers them: joint indices of
+# panda_joint1..7 and of the two fingers, link index of EE_LINK. The simulator and the planners share them.
+ARM_JOINT_IDS = tuple(range(7))
+FINGER_JOINT_IDS = (9, 10)
+EE_LINK_ID = 11
 
 # rad
 LOWER = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
@@ -29,6 +34,13 @@ HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 
 FINGER_MAX = 0.04           # m per finger: gripper opening = 2 x finger position
 GRIPPER_OPEN_WIDTH = 0.08   # m
+OPEN_MARGIN = 0.005         # m below the open width that still reads as open
+
+
+def reads_open(width: float) -> bool:
+    """The gripper's state from its fingers' width (m): open when (nearly) fully open. A grasped
+    object is narrower than the open width, so fingers closed on a handle read as closed."""
+    return width >= GRIPPER_OPEN_WIDTH - OPEN_MARGIN
 
 
 class JointLimits(NamedTuple):

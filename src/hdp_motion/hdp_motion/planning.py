@@ -25,14 +25,9 @@ import numpy as np
 import pybullet as p
 from ompl import base as ob, geometric as og, util as ou
 
-from .panda import FINGER_MAX, HOME, LOWER, ROBOT_BASE, UPPER
+from .panda import ARM_JOINT_IDS, EE_LINK_ID, FINGER_JOINT_IDS, FINGER_MAX, HOME, LOWER, ROBOT_BASE, UPPER
 from .rotations import quat_angle
 
-# pybullet_data's franka_panda/panda.urdf: joint indices of panda_joint1..7, link index of
-# panda_grasptarget (panda.EE_LINK_ID)
-ARM_JOINT_IDS = tuple(range(7))
-FINGER_JOINT_IDS = (9, 10)
-EE_LINK_ID = 11
 # The rigid hand: panda_link8, panda_hand, the grasp target, and the fingers.
 # A grasped body touches these, so they never collide with it.
 HAND_LINKS = frozenset({7, 8, 9, 10, 11})

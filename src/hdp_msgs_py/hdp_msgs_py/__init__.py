@@ -1,1 +1,1 @@
-"""Everything that crosses an HDP node boundary: messages, conversions, topics, runtime."""
+"""What crosses an HDP node boundary: message classes and their CDR codec, conversions, topics, outcomes."""

@@ -19,6 +19,9 @@ import math
 
 import numpy as np
 
+from hdp_motion import panda
+from hdp_motion.rotations import quat_to_matrix
+
 from .msg import (CameraInfo, Duration, Header, Image, JointTrajectory, JointTrajectoryPoint, Point,
                   PointCloud2, PointField, Pose, PoseStamped, Quaternion, Time, Transform, Vector3)
 
@@ -72,6 +75,11 @@ def seconds_to_time(seconds: float) -> Time:
 def duration_to_seconds(duration) -> float:
     """Seconds of a builtin_interfaces/Duration."""
     return duration.sec + duration.nanosec / _NS_PER_S
+
+
+def time_to_ns(stamp) -> int:
+    """Integer nanoseconds of a builtin_interfaces/Time: exact, for keys and ordering."""
+    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
 
 
 def time_to_seconds(stamp) -> float:
@@ -258,15 +266,6 @@ def _unit_quat(quat) -> np.ndarray:
     return q / norm
 
 
-def quat_to_matrix(quat) -> np.ndarray:
-    """(3, 3) rotation matrix of unit quaternion (x, y, z, w)."""
-    x, y, z, w = _unit_quat(quat)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def matrix_to_quat(rotation) -> np.ndarray:
     """Unit quaternion (4,) x, y, z, w with w >= 0 of a (3, 3) rotation matrix."""
     m = _rotation(rotation)
@@ -312,7 +311,7 @@ def transform_to_matrix(transform) -> np.ndarray:
     transform = getattr(transform, 'transform', transform)
     v, q = transform.translation, transform.rotation
     matrix = np.eye(4)
-    matrix[:3, :3] = quat_to_matrix([q.x, q.y, q.z, q.w])
+    matrix[:3, :3] = quat_to_matrix(_unit_quat([q.x, q.y, q.z, q.w]))
     matrix[:3, 3] = _finite_vector([v.x, v.y, v.z], 3, 'translation')
     return matrix
 
@@ -445,6 +444,12 @@ def build_joint_trajectory(joint_names, positions, times_from_start, velocities=
         velocities=array.array('d', velocities[i] if velocities is not None else []),
         time_from_start=seconds_to_duration(times[i])) for i in range(len(times))]
     return JointTrajectory(header=_header(frame_id, stamp), joint_names=names, points=points)
+
+
+def finger_trajectory(is_open: bool, finger_joints=panda.FINGER_JOINTS, stamp=None) -> JointTrajectory:
+    """The gripper command as a finger JointTrajectory: both fingers (m each) open or shut in 0.5 s."""
+    finger = panda.FINGER_MAX if is_open else 0.0
+    return build_joint_trajectory(list(finger_joints), [[finger, finger]], [0.5], stamp=stamp)
 
 
 def parse_joint_trajectory(msg) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray | None]:

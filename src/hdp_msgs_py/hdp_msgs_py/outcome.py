@@ -1,4 +1,5 @@
-"""What became of an instruction: the planner's one structured word on it, on /hdp/outcome.
+"""What the nodes report: a line on /hdp/status (StatusLine), and the planner's one structured
+word on each instruction, on /hdp/outcome (Outcome).
 
 planner_node publishes a std_msgs/String holding one JSON object per instruction when the
 instruction ends (or is refused), so that a caller (`hdp demo`, a test, a user's script) learns
@@ -21,6 +22,12 @@ RESULTS = (
     'ended',        # the segment budget ran out on a robot that reports no success
 )
 MAX_INSTRUCTION_ECHO = 1024     # characters of a (refused) instruction repeated in its outcome
+
+
+class StatusLine(NamedTuple):
+    """A line for /hdp/status (and the node's log), as the node logic hands it to its node."""
+    text: str
+    error: bool = False
 
 
 class Outcome(NamedTuple):

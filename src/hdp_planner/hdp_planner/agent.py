@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from hdp_msgs_py import instructions
+from hdp_data import instructions
 from hdp_msgs_py.conversions import Intrinsics, camera_info_to_intrinsics, transform_to_matrix
 
 from . import checkpoint
@@ -85,6 +85,13 @@ class NextBestPoseAgent:
         if ground_instructions and model.config.language_encoder == 'minilm' and tasks:
             grounding = InstructionGrounding(tasks)
         return cls(model, device, stored['training_seeds'], camera_size, grounding)
+
+    @property
+    def vocabulary(self) -> tuple[str, ...] | None:
+        """The words it can read (a learned word encoder knows only its vocabulary), or None: a
+        sentence encoder reads any words, and its confidence alone refuses what it cannot act on."""
+        config = self.model.config
+        return tuple(config.vocabulary) if config.language_encoder == 'words' else None
 
     def read(self, instruction: str) -> Reading:
         """What the agent is given for ``instruction``: grounding.Reading."""

@@ -4,7 +4,7 @@
      'model': state dict, 'optimizer': state dict, 'step': int, 'metrics': {...},
      'training_seeds': {task: [seed, ...]}}
 
-Written and read by hdp_msgs_py.checkpoints (atomic writes, size cap, weights-only
+Written and read by hdp_learning.checkpoints (atomic writes, size cap, weights-only
 loading, one CheckpointError); the released models/hdp_nbp_agent.pt predates the
 'version' field and reads as version 1. The config rebuilds the network with no
 other file; loading checks every tensor's name and shape against that network.
@@ -12,8 +12,8 @@ other file; loading checks every tensor's name and shape against that network.
 
 from __future__ import annotations
 
-from hdp_msgs_py import checkpoints
-from hdp_msgs_py.checkpoints import CheckpointError
+from hdp_learning import checkpoints
+from hdp_learning.checkpoints import CheckpointError
 
 from .model import ModelConfig, NextBestPoseNet
 

@@ -19,7 +19,7 @@ def configure_train(parser) -> None:
     parser.add_argument('--out', type=Path, required=True, help='checkpoint to write (and continue)')
     parser.add_argument('--config', type=Path,
                         help='YAML file with "model:" (ModelConfig) and/or "train:" (TrainConfig) sections '
-                             '(hdp_msgs_py.config; unknown keys are refused), e.g. the released agent\'s '
+                             '(hdp_learning.config; unknown keys are refused), e.g. the released agent\'s '
                              'src/hdp_planner/config/hdp_nbp_agent.yaml; the flags below override it')
     parser.add_argument('--steps', type=int, help='optimiser steps (default 6000)')
     parser.add_argument('--batch', type=int, help='samples per step, over all processes (default 16)')
@@ -44,7 +44,7 @@ def resolve_train_config(args) -> dict:
     """{'model': ModelConfig, 'train': TrainConfig} of a `hdp train high-level` command: the
     dataclasses' defaults (the vocabulary: the task phrasings'), then --config, then the flags;
     SystemExit with one line for a configuration refused."""
-    from hdp_msgs_py.config import ConfigError, load_sections
+    from hdp_learning.config import ConfigError, load_sections
 
     from .language import task_vocabulary
     from .model import ModelConfig
@@ -68,9 +68,9 @@ def run_train(args) -> int:
     import dataclasses
     import os
 
-    from hdp_msgs_py.config import as_dict
-    from hdp_msgs_py.distributed import torch_device, world_size
-    from hdp_msgs_py.episodes import EpisodeError
+    from hdp_learning.config import as_dict
+    from hdp_learning.distributed import torch_device, world_size
+    from hdp_data.episodes import EpisodeError
 
     from .checkpoint import CheckpointError
     from .train import train
@@ -147,7 +147,7 @@ def run_bench_language(args) -> int:
 
     import torch
 
-    from hdp_msgs_py import instructions
+    from hdp_data import instructions
 
     from .language import paraphrase_phrasings, task_vocabulary
     from .model import LANGUAGE_ENCODERS, ModelConfig, NextBestPoseNet

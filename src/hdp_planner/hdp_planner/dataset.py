@@ -29,8 +29,8 @@ import numpy as np
 
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import camera_info_to_intrinsics, image_to_numpy, transform_to_matrix
-from hdp_msgs_py.episodes import list_episodes, read_episode
-from hdp_msgs_py.workspace import WORKSPACE
+from hdp_data.episodes import list_episodes, read_episode
+from hdp_data.workspace import WORKSPACE
 
 from . import language, rotations
 from .model import hand_pose, hand_vector, proprio_vector

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-from hdp_msgs_py import instructions
+from hdp_data import instructions
 
 from .language import training_phrasings, words
 from .sentence_encoder import frozen_minilm
@@ -49,7 +49,7 @@ def _without(names: set[str], text: str) -> str:
 
 
 class InstructionGrounding:
-    """Instruction -> Reading over the training templates of ``tasks`` (hdp_msgs_py.instructions)."""
+    """Instruction -> Reading over the training templates of ``tasks`` (hdp_data.instructions)."""
 
     def __init__(self, tasks, min_similarity: float = DEFAULT_MIN_SIMILARITY):
         if not 0.0 <= min_similarity <= 1.0:

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from hdp_msgs_py import instructions
+from hdp_data import instructions
 
 PAD, UNK = '<pad>', '<unk>'
 MAX_WORDS = 16

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from hdp_motion import panda
-from hdp_msgs_py.workspace import WORKSPACE
+from hdp_data.workspace import WORKSPACE
 
 from . import rotations, voxels
 from .language import MAX_WORDS, InstructionEncoder, WordEncoder

@@ -6,24 +6,26 @@
 
 The protocol with the controller is in the package README: the NBP's header.stamp keys the
 segment; the gripper goal carries the same stamp; the controller answers on
-/hdp/segment_result with it. ``PlannerLoop`` returns what to publish as ``Out(kind, msg)``:
-'nbp' (PoseStamped), 'gripper_goal' (JointState), a status line 'info' / 'error' (str), or
-'outcome' (hdp_msgs_py.outcome.Outcome) once per instruction, when it ends or is refused.
+/hdp/segment_result with it. ``PlannerLoop`` returns what to publish as records: SegmentGoal
+(the gripper goal and the NBP), Prediction (each prediction's confidence, time and cloud),
+StatusLine, and Outcome once per instruction, when it ends or is refused.
 Times are seconds on the node's clock.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from hdp_motion import panda
-from hdp_msgs_py import checkpoints, conversions, topics
-from hdp_msgs_py.outcome import Outcome
-from hdp_msgs_py.msg import Header, JointState, Time
+from hdp_learning import checkpoints
+from hdp_msgs_py import conversions, topics
+from hdp_msgs_py.conversions import time_to_ns
+from hdp_msgs_py.msg import Header, JointState, PoseStamped, Time
+from hdp_msgs_py.outcome import Outcome, StatusLine
 
 from .language import words
 
@@ -69,13 +71,21 @@ def validate_instruction(text: str, vocabulary) -> str:
     return stripped
 
 
-class Out(NamedTuple):
-    kind: str                  # 'nbp' | 'gripper_goal' (a message) | 'info' | 'error' (a str) | 'outcome'
-    msg: object
+@dataclasses.dataclass(frozen=True)
+class SegmentGoal:
+    """Send the controller a segment: the gripper goal first (so it is usually there when the NBP
+    arrives), then the NBP; both carry the segment's stamp."""
+    gripper_goal: JointState
+    nbp: PoseStamped
 
 
-def stamp_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+    """The agent predicted: its confidence, the seconds it took, and the cloud it saw
+    ((N, 3) xyz, (N, 3) colours), for a viewer."""
+    confidence: float
+    seconds: float
+    cloud: tuple
 
 
 class Observations:
@@ -112,13 +122,13 @@ class Observations:
     def on_joint_state(self, msg) -> None:
         """Keep it if it has every arm and finger joint (a partial one is some other publisher's)."""
         if set(self.arm_joints + self.finger_joints) <= set(msg.name):
-            if stamp_ns(msg.header.stamp) < self.joint_stamp_ns():      # the clock restarted
+            if time_to_ns(msg.header.stamp) < self.joint_stamp_ns():      # the clock restarted
                 self.color.clear()
                 self.depth.clear()
             self.joint_state = msg
 
     def joint_stamp_ns(self) -> int:
-        return stamp_ns(self.joint_state.header.stamp) if self.joint_state is not None else 0
+        return time_to_ns(self.joint_state.header.stamp) if self.joint_state is not None else 0
 
     def missing(self, since_ns: int) -> list[str]:
         """What is not there yet, e.g. ['front camera colour', 'side camera extrinsics']."""
@@ -126,7 +136,7 @@ class Observations:
         latest_ns = self.joint_stamp_ns() + int(FRAME_LEAD_S * 1e9)
         for camera in self.cameras:
             for what, frames in (('colour', self.color), ('depth', self.depth)):
-                if camera not in frames or not since_ns <= stamp_ns(frames[camera].header.stamp) <= latest_ns:
+                if camera not in frames or not since_ns <= time_to_ns(frames[camera].header.stamp) <= latest_ns:
                     missing.append(f'{camera} camera {what}')
             if camera not in self.info:
                 missing.append(f'{camera} camera_info')
@@ -182,7 +192,6 @@ class PlannerLoop:
         self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s
         self.observations = observations or Observations()
         self.instruction: str | None = None
-        self.last_cloud = None          # the latest prediction's cloud (xyz, colours), for a viewer
         self.queued: str | None = None
         self.segment: Segment | None = None       # sent, result not yet back
         self.count = 0                            # segments sent for this instruction
@@ -197,37 +206,38 @@ class PlannerLoop:
     def on_success(self, value: bool) -> None:
         self.success_heard, self.success = True, bool(value)
 
-    def on_instruction(self, text: str, now_s: float) -> list[Out]:
+    def on_instruction(self, text: str, now_s: float) -> list:
         try:
             instruction = validate_instruction(text, self.vocabulary)
         except InstructionRefused as err:
-            return [Out('error', f'refused instruction: {err}'),
-                    Out('outcome', Outcome(text.strip(), 'refused', str(err), 0))]
+            return [StatusLine(f'refused instruction: {err}', error=True),
+                    Outcome(text.strip(), 'refused', str(err), 0)]
         if self.segment is not None:
             self.queued = instruction
-            return [Out('info', f'instruction {instruction!r} queued: it starts when segment '
-                                f'{self.segment.index} ends')]
+            return [StatusLine(f'instruction {instruction!r} queued: it starts when segment '
+                               f'{self.segment.index} ends')]
         return self._begin(instruction, now_s)
 
-    def on_result(self, msg, now_s: float) -> list[Out]:
+    def on_result(self, msg, now_s: float) -> list:
         """A /hdp/segment_result (std_msgs/Header); results of other segments are ignored."""
         segment = self.segment
-        if segment is None or stamp_ns(msg.stamp) != stamp_ns(segment.stamp):
+        if segment is None or time_to_ns(msg.stamp) != time_to_ns(segment.stamp):
             return []
         self.segment = None
         x, y, z = segment.xyz
         line = (f'segment {segment.index}: pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
                 f'{"open" if segment.gripper_open else "close"} -> {msg.frame_id} in {now_s - segment.sent_s:.1f} s')
         if msg.frame_id != topics.SEGMENT_DONE:
-            return [Out('error', line)] + self._stop(f'segment {segment.index} {msg.frame_id}', now_s, 'failed')
+            return [StatusLine(line, error=True)] + self._stop(f'segment {segment.index} {msg.frame_id}', now_s,
+                                                               'failed')
         self.gripper_open = segment.gripper_open
         if self.queued is not None:
-            return [Out('info', line)] + self._stop('replaced by a new instruction', now_s, 'replaced')
+            return [StatusLine(line)] + self._stop('replaced by a new instruction', now_s, 'replaced')
         self._observe(now_s)
-        return [Out('info', line)]
+        return [StatusLine(line)]
 
     # -- the loop ------------------------------------------------------------------------------
-    def step(self, now_s: float, now_ns: int) -> list[Out]:
+    def step(self, now_s: float, now_ns: int) -> list:
         """Advance the loop; call it often (the node's timer). ``now_ns`` stamps a new NBP."""
         if self.instruction is None:
             return []
@@ -252,14 +262,14 @@ class PlannerLoop:
                               f'(no fresh {", ".join(waiting_for)})', now_s, 'failed')
         return self._predict_and_send(now_s, now_ns)
 
-    def robot_gone(self, why: str, now_s: float) -> list[Out]:
+    def robot_gone(self, why: str, now_s: float) -> list:
         """The robot stopped answering (Liveness.problem): the running instruction fails, naming why."""
         if self.instruction is None:
             return []
         self.segment, self.queued = None, None
         return self._stop(why, now_s, 'failed')
 
-    def _result_timed_out(self, now_s: float) -> list[Out]:
+    def _result_timed_out(self, now_s: float) -> list:
         """Report the missing result and go on: re-observe and send a fresh NBP while the budget lasts.
 
         A controller that died mid-segment (or was restarted) then only costs that segment. What
@@ -269,23 +279,24 @@ class PlannerLoop:
         line = (f'segment {segment.index}: no result from the controller within {self.result_timeout_s:.1f} s '
                 f'(is controller_node running?)')
         if self.queued is not None:
-            return [Out('error', line)] + self._stop('replaced by a new instruction', now_s, 'replaced')
+            return [StatusLine(line, error=True)] + self._stop('replaced by a new instruction', now_s, 'replaced')
         self._observe(now_s)
-        return [Out('error', line + ('; re-observing' if self.count < self.max_segments else ''))]
+        return [StatusLine(line + ('; re-observing' if self.count < self.max_segments else ''), error=True)]
 
-    def _predict_and_send(self, now_s: float, now_ns: int) -> list[Out]:
+    def _predict_and_send(self, now_s: float, now_ns: int) -> list:
         try:
             q, width = self.observations.arm()
             if self.gripper_open is None:
-                self.gripper_open = width >= panda.GRIPPER_OPEN_WIDTH - 0.005
+                self.gripper_open = panda.reads_open(width)
+            started = time.perf_counter()
             nbp = self.agent.predict(*self.observations.agent_inputs(), self.instruction, (q, self.gripper_open))
         except (ValueError, RuntimeError) as err:       # bad frames or joint states; torch shape errors
             return self._stop(f'cannot predict a next-best pose: {err}', now_s, 'failed')
-        self.last_cloud = nbp.cloud
+        prediction = Prediction(float(nbp.confidence), time.perf_counter() - started, nbp.cloud)
         if self.count == 0 and nbp.confidence < self.min_confidence:
-            return self._stop(f'refused: the agent cannot ground it (its first next-best pose has confidence '
-                              f'{nbp.confidence:.2f}, below min_confidence {self.min_confidence:.2f})', now_s,
-                              'refused')
+            return [prediction] + self._stop(
+                f'refused: the agent cannot ground it (its first next-best pose has confidence '
+                f'{nbp.confidence:.2f}, below min_confidence {self.min_confidence:.2f})', now_s, 'refused')
         self._last_stamp_ns = max(now_ns, self._last_stamp_ns + 1)     # distinct keys, even on a paused clock
         stamp = Time(sec=self._last_stamp_ns // 1_000_000_000, nanosec=self._last_stamp_ns % 1_000_000_000)
         self.count += 1
@@ -294,13 +305,12 @@ class PlannerLoop:
         x, y, z = nbp.xyz
         goal = JointState(header=Header(stamp=stamp), name=[topics.GRIPPER_GOAL_JOINT],
                           position=[panda.GRIPPER_OPEN_WIDTH if nbp.gripper_open else 0.0])
-        # The gripper goal first, so it is usually there when the NBP arrives.
-        return [Out('gripper_goal', goal),
-                Out('nbp', conversions.xyz_quat_to_pose_stamped(nbp.xyz, nbp.quat, topics.NBP_FRAME, stamp)),
-                Out('info', f'segment {self.count}: sent pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
-                            f'{"open" if nbp.gripper_open else "close"} (confidence {nbp.confidence:.2f})')]
+        return [prediction,
+                SegmentGoal(goal, conversions.xyz_quat_to_pose_stamped(nbp.xyz, nbp.quat, topics.NBP_FRAME, stamp)),
+                StatusLine(f'segment {self.count}: sent pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
+                           f'{"open" if nbp.gripper_open else "close"} (confidence {nbp.confidence:.2f})')]
 
-    def _begin(self, instruction: str, now_s: float) -> list[Out]:
+    def _begin(self, instruction: str, now_s: float) -> list:
         replaced = self.instruction
         # Between instructions the world may have been reset or the hand moved by someone
         # else: the gripper's state is read from the fingers again, not carried over.
@@ -310,7 +320,7 @@ class PlannerLoop:
         reading = self.agent.read(instruction)
         if reading.grounded and reading.text != instruction:
             note += f', read as {reading.text!r} (similarity {reading.similarity:.2f})'
-        return [Out('info', f'instruction {instruction!r}: up to {self.max_segments} segments{note}')]
+        return [StatusLine(f'instruction {instruction!r}: up to {self.max_segments} segments{note}')]
 
     def _observe(self, now_s: float) -> None:
         """Wait for frames taken after now, and for a success report after now."""
@@ -318,10 +328,10 @@ class PlannerLoop:
         self.success = None
         self.deadline_s = now_s + self.camera_timeout_s
 
-    def _stop(self, why: str, now_s: float, result: str) -> list[Out]:
+    def _stop(self, why: str, now_s: float, result: str) -> list:
         """End the instruction with ``result`` (outcome.RESULTS): a status line and its outcome."""
-        out = [Out('error' if result in ('failed', 'refused') else 'info', f'instruction {self.instruction!r}: {why}'),
-               Out('outcome', Outcome(self.instruction, result, why, self.count))]
+        out = [StatusLine(f'instruction {self.instruction!r}: {why}', error=result in ('failed', 'refused')),
+               Outcome(self.instruction, result, why, self.count)]
         self.instruction, self.segment = None, None
         if self.queued is not None:
             queued, self.queued = self.queued, None

@@ -4,7 +4,7 @@ The logic is planner_logic.PlannerLoop; this node wires it to topics and paramet
 10 Hz timer advances the loop, and the agent predicts inside that callback (a few tens of
 milliseconds on a CPU core). Timeouts run on the node's clock (the graph's YAML keeps this
 node on wall time); a second timer on the steady clock fails the running instruction when
-/joint_states stop or the node's clock stands still (hdp_msgs_py.liveness), so a dead simulator
+/joint_states stop or the node's clock stands still (hdp_ros.liveness), so a dead simulator
 or robot driver is named within state_timeout_s instead of being blamed on the controller.
 """
 
@@ -14,14 +14,17 @@ import time
 from rclpy.clock import Clock, ClockType
 
 from hdp_motion import panda
-from hdp_msgs_py import conversions, ros, topics
-from hdp_msgs_py.liveness import Liveness
+from hdp_msgs_py import conversions, topics
+from hdp_ros import ros
+from hdp_ros.liveness import Liveness
 from hdp_msgs_py.msg import (Bool, CameraInfo, Header, Image, JointState, Marker, PointCloud2, PoseStamped, String,
                              TFMessage)
+from hdp_msgs_py.outcome import Outcome, StatusLine
 
 from . import visualisation
 from .agent import NextBestPoseAgent
-from .planner_logic import DEFAULT_MIN_CONFIDENCE, Observations, PlannerLoop, default_checkpoint
+from .planner_logic import (DEFAULT_MIN_CONFIDENCE, Observations, PlannerLoop, Prediction, SegmentGoal,
+                            default_checkpoint)
 
 _STEP_S = 0.1
 _WATCH_S = 0.5
@@ -66,19 +69,14 @@ class PlannerNode(ros.Node):
         prefix = p['joint_prefix']
         observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
                                     panda.finger_joint_names(prefix))
-        # A word encoder knows only its vocabulary; a sentence encoder reads any words, and the
-        # agent's confidence alone refuses what it cannot act on (as the hierarchy evaluation does).
-        config = agent.model.config
-        vocabulary = config.vocabulary if config.language_encoder == 'words' else None
-        self.loop = PlannerLoop(agent, vocabulary, p['max_segments'], p['camera_timeout_s'],
+        self.observations = observations           # the loop reads them; the subscriptions fill them
+        self.loop = PlannerLoop(agent, agent.vocabulary, p['max_segments'], p['camera_timeout_s'],
                                 p['result_timeout_s'], observations, p['min_confidence'])
 
         self.status = ros.Status(self)
-        self._outputs = {
-            'nbp': self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS),
-            'gripper_goal': self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS),
-            'outcome': self.create_publisher(String, topics.OUTCOME, topics.COMMAND_QOS),
-        }
+        self._nbp = self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
+        self._gripper_goal = self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS)
+        self._outcome = self.create_publisher(String, topics.OUTCOME, topics.COMMAND_QOS)
         # For RViz and Foxglove: the NBP as a TF frame and an arrow.
         self._tf = self.create_publisher(TFMessage, topics.TF, topics.TF_QOS)
         self._marker = self.create_publisher(Marker, topics.NEXT_BEST_POSE_MARKER, topics.COMMAND_QOS)
@@ -108,7 +106,7 @@ class PlannerNode(ros.Node):
 
     def _on_joint_state(self, msg):
         self.liveness.heard(time.monotonic())
-        self.loop.observations.on_joint_state(msg)
+        self.observations.on_joint_state(msg)
 
     def _watch(self):
         problem = self.liveness.problem(time.monotonic(), self._now())
@@ -119,25 +117,24 @@ class PlannerNode(ros.Node):
         started = time.monotonic()
         now = self.get_clock().now().nanoseconds
         self._send(self.loop.step(now * 1e-9, now))
-        if self._cloud is not None and self.loop.last_cloud is not None:
-            header = Header(stamp=self.get_clock().now().to_msg(), frame_id=topics.NBP_FRAME)
-            self._cloud.publish(conversions.cloud_to_pointcloud2(*self.loop.last_cloud, header))
-            self.loop.last_cloud = None
         if time.monotonic() - started > _WATCH_S:      # a slow prediction: no message was taken meanwhile
             self.liveness.excuse(time.monotonic())
 
     def _send(self, outputs):
-        goals = [msg for kind, msg in outputs if kind == 'gripper_goal']
-        for kind, msg in outputs:
-            if kind in ('info', 'error'):
-                self.status.say(kind, msg)
-            elif kind == 'outcome':
-                self._outputs[kind].publish(String(data=msg.to_json()))
-            else:
-                self._outputs[kind].publish(msg)
-            if kind == 'nbp':
-                self._tf.publish(TFMessage(transforms=[visualisation.nbp_transform(msg)]))
-                self._marker.publish(visualisation.nbp_marker(msg, visualisation.opens(goals[0]) if goals else True))
+        for out in outputs:
+            match out:
+                case StatusLine():
+                    self.status.line(out)
+                case Outcome():
+                    self._outcome.publish(String(data=out.to_json()))
+                case SegmentGoal():
+                    self._gripper_goal.publish(out.gripper_goal)
+                    self._nbp.publish(out.nbp)
+                    self._tf.publish(TFMessage(transforms=[visualisation.nbp_transform(out.nbp)]))
+                    self._marker.publish(visualisation.nbp_marker(out.nbp, visualisation.opens(out.gripper_goal)))
+                case Prediction() if self._cloud is not None:
+                    header = Header(stamp=self.get_clock().now().to_msg(), frame_id=topics.NBP_FRAME)
+                    self._cloud.publish(conversions.cloud_to_pointcloud2(*out.cloud, header))
 
 
 def main(args=None):

@@ -14,22 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdp_motion.rotations import quat_angle
+from hdp_motion.rotations import quat_angle, quat_to_matrix
 
 BIN_DEGREES = 5
 BINS = 360 // BIN_DEGREES
 
 angle_between = quat_angle      # (...,) geodesic angle in rad between two (..., 4) orientations
-
-
-def quat_to_matrix(quat) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of (..., 4) quaternions (normalised first)."""
-    q = np.asarray(quat, dtype=np.float64)
-    x, y, z, w = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 def euler_to_quat(euler) -> np.ndarray:

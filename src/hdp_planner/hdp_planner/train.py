@@ -32,9 +32,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from hdp_msgs_py import distributed
-from hdp_msgs_py.curves import CurveLog, curves_path
-from hdp_msgs_py.episodes import union_of_seeds
+from hdp_learning import distributed
+from hdp_learning.curves import CurveLog, curves_path
+from hdp_data.episodes import union_of_seeds
 
 from . import checkpoint, rotations, voxels
 from .dataset import KeyframeDataset

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from hdp_motion import panda
-from hdp_msgs_py.conversions import quat_to_matrix
+from hdp_motion.rotations import quat_to_matrix
 from hdp_msgs_py.msg import ColorRGBA, Marker, Point, Transform, TransformStamped, Vector3
 
 NBP_FRAME_ID = 'hdp_next_best_pose'

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from hdp_msgs_py.conversions import depth_to_points
-from hdp_msgs_py.workspace import WORKSPACE, in_workspace
+from hdp_data.workspace import WORKSPACE, in_workspace
 
 VOXELS = 16
 FINE_HALF_EXTENT = 0.12        # m

@@ -12,7 +12,8 @@ import json
 import numpy as np
 
 from hdp_motion import panda
-from hdp_msgs_py import conversions, instructions
+from hdp_data import instructions
+from hdp_msgs_py import conversions
 from hdp_msgs_py.msg import Clock, Header, TFMessage, Time
 
 from .cameras import default_cameras
@@ -72,8 +73,12 @@ def gripper_target(msg) -> bool:
 
 
 class SimBridge:
-    def __init__(self, width: int = 640, height: int = 480):
-        self.world = PandaWorld()
+    """world: a PandaWorld to use (and leave open on close()), as an evaluation keeps one
+    between episodes; None makes one of its own."""
+
+    def __init__(self, width: int = 640, height: int = 480, world: PandaWorld | None = None):
+        self._owns_world = world is None
+        self.world = world if world is not None else PandaWorld()
         self.cameras = default_cameras(width, height)
         self.publishing = tuple(self.cameras)     # cameras whose frames go out; /hdp/sim/cameras stops some
         self.task = None
@@ -181,4 +186,5 @@ class SimBridge:
                 conversions.numpy_to_image(depth, '16UC1', header), camera.camera_info(stamp))
 
     def close(self) -> None:
-        self.world.close()
+        if self._owns_world:
+            self.world.close()

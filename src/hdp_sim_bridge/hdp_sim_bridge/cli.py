@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def _tasks(text: str) -> list[str]:
-    from hdp_msgs_py.instructions import task_names
+    from hdp_data.instructions import task_names
     try:
         return task_names(text)
     except ValueError as err:

@@ -19,7 +19,7 @@ import numpy as np
 
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
-from hdp_msgs_py.episodes import EpisodeWriter
+from hdp_data.episodes import EpisodeWriter
 from hdp_msgs_py.msg import Header, JointState, String, TFMessage
 
 from .cameras import default_cameras
@@ -57,13 +57,6 @@ def joint_state(world, sim_seconds: float) -> JointState:
                       name=list(panda.ARM_JOINTS + panda.FINGER_JOINTS),
                       position=np.concatenate([world.joint_positions(), fingers]),
                       velocity=np.concatenate([world.joint_velocities(), np.zeros(2)]))
-
-
-def gripper_command(is_open: bool, sim_seconds: float):
-    finger = panda.FINGER_MAX if is_open else 0.0
-    msg = conversions.build_joint_trajectory(list(panda.FINGER_JOINTS), [[finger, finger]], [0.5])
-    msg.header.stamp = stamp(sim_seconds)
-    return msg
 
 
 def write_cameras(writer: EpisodeWriter, world, cameras: dict, sim_seconds: float) -> None:
@@ -113,7 +106,7 @@ def record_episode(world: PandaWorld, task_name: str, seed: int, out_dir: Path,
 
         def on_gripper(is_open):
             t = world.sim_time - t0
-            writer.write(topics.GRIPPER_TRAJECTORY, gripper_command(is_open, t), int(round(t * 1e9)))
+            writer.write(topics.GRIPPER_TRAJECTORY, conversions.finger_trajectory(is_open, stamp=stamp(t)), int(round(t * 1e9)))
 
         result = run_expert(world, task, rng, on_step, on_rest, on_gripper)
         writer.set_metadata('failure_reason', result.reason)

@@ -16,9 +16,9 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from hdp_msgs_py.instructions import DRAWER_NAMES
+from hdp_data.instructions import DRAWER_NAMES
 
-# RGB of the named colours task variations use (RLBench uses 20; hdp_msgs_py.instructions.COLOUR_NAMES).
+# RGB of the named colours task variations use (RLBench uses 20; hdp_data.instructions.COLOUR_NAMES).
 COLOURS = {
     'red': (1.0, 0.0, 0.0), 'maroon': (0.5, 0.0, 0.0), 'lime': (0.0, 1.0, 0.0),
     'green': (0.0, 0.5, 0.0), 'blue': (0.0, 0.0, 1.0), 'navy': (0.0, 0.0, 0.5),

@@ -16,7 +16,8 @@ import pybullet
 import pybullet_data
 
 from hdp_motion.panda import ROBOT_BASE
-from hdp_msgs_py.conversions import matrix_to_transform, quat_to_matrix
+from hdp_motion.rotations import quat_to_matrix
+from hdp_msgs_py.conversions import matrix_to_transform
 from hdp_msgs_py.msg import Header, TransformStamped
 
 WORLD_FRAME = 'world'

@@ -14,7 +14,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from hdp_motion import panda
-from hdp_msgs_py import ros, topics
+from hdp_msgs_py import topics
+from hdp_ros import ros
 from hdp_msgs_py.conversions import duration_to_seconds
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
 

@@ -16,8 +16,9 @@ import math
 
 import numpy as np
 
-from hdp_msgs_py import instructions
-from hdp_msgs_py.conversions import matrix_to_quat, quat_to_matrix
+from hdp_motion.rotations import quat_to_matrix
+from hdp_data import instructions
+from hdp_msgs_py.conversions import matrix_to_quat
 
 from . import objects
 from .world import TABLE_TOP_Z

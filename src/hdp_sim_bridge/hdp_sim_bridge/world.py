@@ -31,9 +31,8 @@ import pybullet_data
 from pybullet_utils.bullet_client import BulletClient
 
 from hdp_motion import panda
-from hdp_motion.panda import ROBOT_BASE
-from hdp_motion.planning import ARM_JOINT_IDS, EE_LINK_ID, FINGER_JOINT_IDS
-from hdp_msgs_py.workspace import TABLE_CENTER_XY, TABLE_HALF_EXTENTS, TABLE_TOP_Z, WORKSPACE  # noqa: F401
+from hdp_motion.panda import ARM_JOINT_IDS, EE_LINK_ID, FINGER_JOINT_IDS, ROBOT_BASE
+from hdp_data.workspace import TABLE_CENTER_XY, TABLE_HALF_EXTENTS, TABLE_TOP_Z, WORKSPACE  # noqa: F401
 
 TIME_STEP = 1.0 / 240.0           # s
 GRAVITY = -9.81                   # m/s^2

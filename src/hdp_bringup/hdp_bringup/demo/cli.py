@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from hdp_controller.methods import METHODS      # controller_node's `method` parameter
 from hdp_msgs_py.msg import String
 
 from ..launch_cli import NODES, default_params_file, node_commands
@@ -25,7 +26,6 @@ from .media import write_episode_files
 from .recording import BagRecorder
 from .watcher import DemoNode, GraphDown, Interrupted, Session, run_episode, wait_for_graph, watched_graph
 
-METHODS = ('rkd', 'planner', 'pose_ik', 'joint')      # controller_node's `method` parameter
 SAMPLERS = ('ddim', 'ddpm')                            # controller_node's `sampler` parameter
 DEFAULT_SEED = 1000            # evaluation seeds start here, apart from every training seed
 SAFE_DOMAINS = range(1, 102)   # ROS_DOMAIN_IDs whose ports stay below Linux's ephemeral range

@@ -14,11 +14,6 @@ import numpy as np
 STAGES = ('observe_predict_s', 'controller_s', 'execution_s')
 
 
-def stamp_ns(stamp) -> int:
-    """A builtin_interfaces/Time as integer nanoseconds: the segment's key, compared exactly."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
 @dataclasses.dataclass
 class Segment:
     """One NBP and what became of it; times are seconds since the instruction."""

@@ -16,7 +16,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from hdp_msgs_py import topics
-from hdp_msgs_py.episodes import offered_qos
+from hdp_data.episodes import offered_qos
 from hdp_msgs_py.message import type_name_of
 from hdp_msgs_py.msg import (CameraInfo, Image, JointState, JointTrajectory, Marker, PointCloud2, PoseStamped,
                              String, TFMessage)

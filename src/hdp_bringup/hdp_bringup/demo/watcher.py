@@ -18,13 +18,16 @@ import rclpy
 import rclpy.executors
 
 from hdp_motion import panda
-from hdp_msgs_py import conversions, instructions, ros, topics
+from hdp_data import instructions
+from hdp_msgs_py import conversions, topics
+from hdp_ros import ros
+from hdp_msgs_py.conversions import time_to_ns
 from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
 from hdp_msgs_py.outcome import Outcome
 
 from ..launch_cli import NODES, running_nodes, start_node
 from .cpu import cpu_usage
-from .episode_log import EpisodeLog, stall_report, stamp_ns
+from .episode_log import EpisodeLog, stall_report
 from .media import GIF_WIDTH
 
 SCENE_TIMEOUT_S = 60.0         # for a (reset) scene to show a frame and its success report
@@ -126,13 +129,13 @@ class DemoNode(ros.Node):
 
     def _on_gripper_goal(self, msg):
         if self.log is not None and len(msg.position) == 1:
-            self.log.gripper_goal(stamp_ns(msg.header.stamp),
+            self.log.gripper_goal(time_to_ns(msg.header.stamp),
                                   float(msg.position[0]) >= panda.GRIPPER_OPEN_WIDTH / 2)
 
     def _on_nbp(self, msg):
         if self.log is not None:
             p = msg.pose.position
-            self.log.nbp(self.now(), stamp_ns(msg.header.stamp), (p.x, p.y, p.z))
+            self.log.nbp(self.now(), time_to_ns(msg.header.stamp), (p.x, p.y, p.z))
 
     def _on_trajectory(self, msg):
         if self.log is not None and msg.points:
@@ -141,7 +144,7 @@ class DemoNode(ros.Node):
 
     def _on_result(self, msg):
         if self.log is not None:
-            segment = self.log.result(self.now(), stamp_ns(msg.stamp), msg.frame_id)
+            segment = self.log.result(self.now(), time_to_ns(msg.stamp), msg.frame_id)
             if segment is not None:
                 self.on_segment(segment)
 

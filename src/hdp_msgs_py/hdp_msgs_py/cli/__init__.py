@@ -1,1 +1,1 @@
-"""The `hdp` command line: one entry point, subcommands contributed by every package."""
+"""Moved: the `hdp` command is hdp_tools.cli; only main's notice stays here, for old command lines."""

@@ -5,15 +5,15 @@
      included; the frozen sentence encoder's weights never), 'optimizer': state dict, 'step': int,
      'metrics': {...}, 'training_seeds': {task: [seed, ...]}}
 
-Written and read by hdp_msgs_py.checkpoints (atomic writes, size cap, weights-only loading, one
+Written and read by hdp_learning.checkpoints (atomic writes, size cap, weights-only loading, one
 CheckpointError line); the config rebuilds the network with no other file, and loading checks
 every tensor's name and shape against it. Evaluation refuses the training seeds.
 """
 
 from __future__ import annotations
 
-from hdp_msgs_py import checkpoints
-from hdp_msgs_py.checkpoints import CheckpointError
+from hdp_learning import checkpoints
+from hdp_learning.checkpoints import CheckpointError
 
 from . import POLICIES
 

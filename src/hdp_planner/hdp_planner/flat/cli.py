@@ -35,7 +35,7 @@ def configure_train(parser) -> None:
 def resolve_config(args) -> dict:
     """{'model': the policy's config, 'train': FlatTrainConfig}: defaults, then --config, then the flags;
     SystemExit with one line for a configuration refused."""
-    from hdp_msgs_py.config import ConfigError, load_sections
+    from hdp_learning.config import ConfigError, load_sections
 
     from .checkpoint import config_class
     from .train import FlatTrainConfig
@@ -52,10 +52,10 @@ def resolve_config(args) -> dict:
 def run_train(args) -> int:
     import torch
 
-    from hdp_msgs_py.checkpoints import CheckpointError
-    from hdp_msgs_py.config import as_dict
-    from hdp_msgs_py.distributed import torch_device
-    from hdp_msgs_py.episodes import EpisodeError
+    from hdp_learning.checkpoints import CheckpointError
+    from hdp_learning.config import as_dict
+    from hdp_learning.distributed import torch_device
+    from hdp_data.episodes import EpisodeError
 
     from .train import train
     configs = resolve_config(args)

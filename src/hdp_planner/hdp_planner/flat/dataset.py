@@ -32,7 +32,7 @@ import numpy as np
 
 from hdp_motion import panda
 from hdp_msgs_py import topics
-from hdp_msgs_py.episodes import list_episodes, read_episode
+from hdp_data.episodes import list_episodes, read_episode
 
 from .. import language
 from ..agent import downscale

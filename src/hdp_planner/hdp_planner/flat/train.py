@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hdp_msgs_py.curves import CurveLog, curves_path
+from hdp_learning.curves import CurveLog, curves_path
 
 from .. import language
 from . import checkpoint

@@ -7,7 +7,7 @@ Liveness whether /joint_states still arrive and whether the node's clock still m
 
 from __future__ import annotations
 
-from . import topics
+from hdp_msgs_py import topics
 
 
 class Liveness:

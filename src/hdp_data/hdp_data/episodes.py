@@ -20,7 +20,7 @@ EpisodeError (a ValueError) naming the bag and topic.
 
 Times are the bag's timestamps in seconds: the receive time under
 ``ros2 bag record``, the ``stamp_ns`` the collector passed to ``write``.
-Read messages are always this package's classes (hdp_msgs_py.message),
+Read messages are always hdp_msgs_py's own classes (hdp_msgs_py.message),
 whichever runtime is active.
 """
 
@@ -40,10 +40,11 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from . import cdr, topics
+from hdp_motion.panda import FINGER_MAX, ROBOT_LIMITS, finger_joint_names, joint_names, reads_open
+from hdp_msgs_py import cdr, topics
+from hdp_msgs_py.message import Message, from_rclpy, get_message, type_name_of
+
 from .keyframes import DEFAULT_STOPPED_BUFFER, DEFAULT_STOPPING_DELTA, discover_keyframes
-from .message import Message, from_rclpy, get_message, type_name_of
-from hdp_motion.panda import FINGER_MAX, GRIPPER_OPEN_WIDTH, ROBOT_LIMITS, finger_joint_names, joint_names
 
 ROBOTS = tuple(ROBOT_LIMITS)          # the arms a recording may come from (hdp.robot)
 
@@ -51,9 +52,6 @@ METADATA_PREFIX = 'hdp.'
 DEFAULT_MAX_BYTES = 2 * 1024 ** 3
 DEFAULT_MAX_MESSAGES = 2_000_000         # > 5 h of 100 Hz joint states with cameras
 _MAX_METADATA_BYTES = 1024 ** 2
-# Without a gripper command topic, the gripper counts as open when the
-# fingers are within this of fully open (a grasped object keeps them apart).
-_OPEN_WIDTH_TOLERANCE = 0.005            # m
 # rmw's "infinite" duration, as rosbag2 writes it for default deadline/lifespan/lease.
 _INFINITE = QosTime(9223372036, 854775807)
 
@@ -239,7 +237,7 @@ class Episode:
 
     def keyframes(self, stopping_delta: float = DEFAULT_STOPPING_DELTA,
                   stopped_buffer: int = DEFAULT_STOPPED_BUFFER) -> list[int]:
-        """Keyframe indices into joint_states (see hdp_msgs_py.keyframes)."""
+        """Keyframe indices into joint_states (see hdp_data.keyframes)."""
         js = self.joint_states
         return discover_keyframes(js.velocity, js.gripper_open, stopping_delta, stopped_buffer)
 
@@ -476,8 +474,9 @@ class _JointRows:
 
 
 def _gripper_open(t: np.ndarray, width: np.ndarray, commands: list) -> np.ndarray:
-    """(T,) bool: the last gripper command's state at each time, the measured one before any."""
-    opened = width >= GRIPPER_OPEN_WIDTH - _OPEN_WIDTH_TOLERANCE
+    """(T,) bool: the last gripper command's state at each time, the measured one before any
+    (panda.reads_open: a grasped object keeps the fingers apart, short of open)."""
+    opened = reads_open(width)
     commanded = [(stamp, np.mean(msg.points[-1].positions) > FINGER_MAX / 2)
                  for stamp, msg in commands if msg.points and len(msg.points[-1].positions)]
     if not commanded:

@@ -1,7 +1,7 @@
 """What every HDP node adds to rclpy: a middleware set up for camera frames, callbacks that
 cannot stop the node, a status line for users, and a main().
 
-    from hdp_msgs_py import ros
+    from hdp_ros import ros
 
     class PlannerNode(ros.Node): ...          # an rclpy.node.Node
         self.status = ros.Status(self)
@@ -33,8 +33,8 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.utilities import remove_ros_args
 
-from . import topics
-from .msg import String
+from hdp_msgs_py import topics
+from hdp_msgs_py.msg import String
 
 
 FASTDDS_LOCALHOST_PROFILE = Path(__file__).with_name('config') / 'fastdds_localhost.xml'
@@ -141,9 +141,9 @@ class Status:
         self._node.get_logger().error(text)
         self._publisher.publish(String(data=f'{self._node.get_name()}: {text}'))
 
-    def say(self, level: str, text: str) -> None:
-        """level 'info' or 'error', as the node loops hand them out."""
-        (self.error if level == 'error' else self.info)(text)
+    def line(self, line) -> None:
+        """A StatusLine (hdp_msgs_py.outcome) as the node logic hands it out."""
+        (self.error if line.error else self.info)(line.text)
 
 
 def usage(node_class, name: str) -> str:

@@ -12,7 +12,7 @@ import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from .. import ros
+from hdp_ros import ros
 
 # A peer usually shows up in well under a second, but when the first exchange with a new
 # participant is lost (about one start in five here) only at the peer's next announcement:

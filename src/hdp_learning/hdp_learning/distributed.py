@@ -1,12 +1,13 @@
 """Where training and evaluation run: the torch device, and processes launched by torchrun
 (its environment: RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR...).
 
-Both trainers (DistributedDataParallel) and the low level's evaluation (episodes
-sharded over the ranks, one result gathered on rank 0) use the same launcher, so a
+``hdp train low-level`` and ``hdp train high-level`` (DistributedDataParallel) and
+the evaluations (episodes sharded over the ranks, one result gathered on rank 0) use
+the same launcher, and every trainer (``hdp train flat`` too) its device, so a
 run on several processes or machines is ``torchrun [--nnodes ...] --nproc-per-node
-N -m hdp_msgs_py.cli.main <the same hdp command>``. Without torchrun there is one
+N -m hdp_tools.cli.main <the same hdp command>``. Without torchrun there is one
 process and nothing here starts a process group. torch is imported inside the
-functions only (as in ``checkpoints``): hdp_msgs_py needs no torch at import.
+functions only (as in ``checkpoints``): hdp_learning needs no torch at import.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ from rclpy.exceptions import InvalidTopicNameException
 from rclpy.qos import ReliabilityPolicy
 from rclpy.validate_topic_name import validate_topic_name
 
-from ..message_yaml import get_message, message_from_yaml, message_to_yaml
+from hdp_msgs_py.message_yaml import get_message, message_from_yaml, message_to_yaml
 from .common import (DISCOVERY_WAIT, add_discovery_args, add_qos_args, cli_node, interrupted, qos_from_args,
                      qos_profile, spin_until)
 

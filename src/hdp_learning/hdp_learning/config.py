@@ -1,8 +1,9 @@
 """YAML configs made of sections, each one dataclass: the one mechanism behind every ``--config``.
 
-Both trainers read a file with a ``model:`` and a ``train:`` section
+Every trainer reads a file with a ``model:`` and a ``train:`` section
 (``hdp train low-level``: RKDConfig and TrainConfig; ``hdp train high-level``:
-ModelConfig and TrainConfig). Precedence, lowest first: the dataclass's
+ModelConfig and TrainConfig; ``hdp train flat``: the policy's config and
+FlatTrainConfig). Precedence, lowest first: the dataclass's
 defaults, ``defaults`` given by the caller (what only code knows, such as the
 agent's vocabulary), the file, then ``overrides`` (command-line flags; a
 None value is a flag not given). An unknown section or key, a value of the

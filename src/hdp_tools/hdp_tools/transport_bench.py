@@ -60,7 +60,7 @@ _CYCLONE_CONFIG = ('<CycloneDDS><Domain Id="any"><General>'
 
 def make_images(width: int, height: int) -> list:
     """One Image per stream: rgb8 for colour, 16UC1 (mm) for depth, random content."""
-    from .conversions import numpy_to_image
+    from hdp_msgs_py.conversions import numpy_to_image
     rng = np.random.default_rng(0)
     return [numpy_to_image(rng.integers(300, 2000, (height, width), dtype=np.uint16), '16UC1')
             if 'depth' in topic else
@@ -76,7 +76,7 @@ def _stamp_now() -> tuple[int, int]:
 def _rclpy_node(name: str, domain_id: int):
     import rclpy
 
-    from . import ros
+    from hdp_ros import ros
     context = rclpy.Context()
     ros.init(context=context, domain_id=domain_id)     # the Fast DDS profile the nodes run with
     node = rclpy.create_node(name, context=context)
@@ -135,8 +135,8 @@ def _publisher(mode: str, images: list, domain_id: int):
         with _cyclone_endpoints(domain_id, DataWriter) as (_, writers):
             yield send, lambda: all(w.get_matched_subscriptions() for w in writers)
         return
-    from .msg import Image
-    from .topics import SENSOR_QOS
+    from hdp_msgs_py.msg import Image
+    from hdp_msgs_py.topics import SENSOR_QOS
     with _rclpy_node('bench_publisher', domain_id) as node:
         pubs = [node.create_publisher(Image, topic, SENSOR_QOS) for topic in STREAMS]
 
@@ -200,9 +200,9 @@ def _receiver(mode: str, domain_id: int, record: _Recorder):
         return
     from rclpy.executors import SingleThreadedExecutor
 
-    from .conversions import image_to_numpy
-    from .msg import Image
-    from .topics import SENSOR_QOS
+    from hdp_msgs_py.conversions import image_to_numpy
+    from hdp_msgs_py.msg import Image
+    from hdp_msgs_py.topics import SENSOR_QOS
 
     def on_message(i, msg):
         image_to_numpy(msg)     # what every image-consuming node does first
@@ -248,7 +248,7 @@ def _publisher_process(mode: str, seconds: float, width: int, height: int, domai
     with tempfile.TemporaryDirectory() as tmp:
         ready = os.path.join(tmp, 'ready')
         child = subprocess.Popen(
-            [sys.executable, '-m', 'hdp_msgs_py.transport_bench', '--mode', mode, '--seconds', str(seconds),
+            [sys.executable, '-m', 'hdp_tools.transport_bench', '--mode', mode, '--seconds', str(seconds),
              '--width', str(width), '--height', str(height), '--domain-id', str(domain_id), '--ready', ready])
 
         def is_ready():

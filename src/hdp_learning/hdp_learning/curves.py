@@ -1,6 +1,7 @@
 """Training curves as a CSV file beside the checkpoint: a `step` column, then one column per
 scalar (losses, learning rate, validation metrics), empty where a row has none. Any
 spreadsheet, pandas or gnuplot opens it without this project; `hdp plot curves` draws it.
+Every trainer writes one (`hdp train low-level`, `hdp train high-level`, `hdp train flat`).
 """
 
 from __future__ import annotations

@@ -1,0 +1,1 @@
+"""HDP learning infrastructure: --config, checkpoints, training curves, torchrun; torch only inside functions."""

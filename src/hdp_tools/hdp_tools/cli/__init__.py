@@ -1,0 +1,1 @@
+"""The `hdp` command line: one entry point, subcommands contributed by every package."""
