@@ -47,8 +47,8 @@ $(IFACE_STAMP): $(STAMP) $(shell find $(ROS_IFACES) -type f)
 test: setup
 	$(PY) -m pytest -q tests src
 
-# One tier each (pytest.ini, ARCHITECTURE.md "How it is tested"): unit is the edit loop (under
-# 3 minutes on two cores), sim the in-process simulator and training, dds processes and DDS.
+# One tier each (pytest.ini, ARCHITECTURE.md "How it is tested"): unit is the edit loop (~25 s on
+# two cores; must stay under 3 minutes), sim the in-process simulator, dds processes and DDS.
 test-fast: setup
 	$(PY) -m pytest -q -m unit tests src
 

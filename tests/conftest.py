@@ -52,3 +52,10 @@ def pytest_collection_modifyitems(config, items):
             node.own_markers[:] = [m for m in node.own_markers if m.name not in TIERS]
         if tier not in {m.name for m in item.own_markers}:
             item.add_marker(tier)                   # ...onto each test that did not choose its own
+
+
+def pytest_sessionfinish(session):
+    """Processes the tests SIGKILL leave their Fast DDS shared memory behind; each process start
+    (ros.init) removes what dead ones left, and this what the run's last ones left."""
+    from hdp_ros import shm
+    shm.remove_dead_segments()

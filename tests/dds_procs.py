@@ -8,12 +8,15 @@ from another process, never on shared memory.
     python dds_procs.py raising_sub        # callback raises on the first message
     python dds_procs.py params --ros-args ...
     python dds_procs.py foreign_writer     # plain cyclonedds writer, a string that is not UTF-8
+    python dds_procs.py foreign_reader [--stop-on-receipt]   # plain cyclonedds reader: UDP only
+    python dds_procs.py gripper_goals --goals '[[position, max_effort], ...]'   # GripperCommand goals
 """
 
 import argparse
 import hashlib
 import json
 import os
+import signal
 import sys
 import threading
 import time
@@ -70,6 +73,16 @@ def topic_of(kind: str) -> str:
             'image': '/camera/front/color/image_raw', 'tf': '/tf_static'}[kind]
 
 
+_nodes = []
+
+
+def make_node(name: str, **kwargs) -> ros.Node:
+    """A node that main() destroys before it exits: its participant then leaves the graph at
+    once (its peers stop waiting on it) and takes its shared memory with it."""
+    _nodes.append(ros.Node(name, **kwargs))
+    return _nodes[-1]
+
+
 def spin_until(node, done, timeout: float) -> None:
     """Spin until done() or timeout; a shutdown (SIGINT/SIGTERM) just ends the wait."""
     end = time.monotonic() + timeout
@@ -88,7 +101,7 @@ def emit(**facts):
 
 
 def run_pub(args):
-    node = ros.Node('test_publisher')
+    node = make_node('test_publisher')
     msg_type = type(make(args.kind, 0))
     pub = node.create_publisher(msg_type, topic_of(args.kind), QOS[args.qos])
     sent = []
@@ -102,7 +115,7 @@ def run_pub(args):
 
 
 def run_sub(args):
-    node = ros.Node('test_subscriber')
+    node = make_node('test_subscriber')
     got = []
     msg_type = type(make(args.kind, 0))
     node.create_subscription(msg_type, topic_of(args.kind), lambda m: got.append(summary(args.kind, m)),
@@ -112,7 +125,7 @@ def run_sub(args):
 
 
 def run_raising_sub(args):
-    node = ros.Node('raising_subscriber')
+    node = make_node('raising_subscriber')
     got = []
 
     def callback(msg):
@@ -126,7 +139,7 @@ def run_raising_sub(args):
 
 
 def run_params(args):
-    node = ros.Node('param_node')
+    node = make_node('param_node')
     node.declare_parameter('checkpoint', 'models/default.pt')
     node.declare_parameter('step_budget', 10)
     node.declare_parameter('timeout_sec', 5.0)
@@ -141,7 +154,7 @@ def run_params(args):
 def run_clock(args):
     """Publish /clock: sim time starts at 1000 s and runs 10x faster than the wall."""
     from hdp_msgs_py.msg import Clock, Time
-    node = ros.Node('fake_sim')
+    node = make_node('fake_sim')
     pub = node.create_publisher(Clock, '/clock', 10)
     start = time.monotonic()
     while rclpy.ok() and time.monotonic() - start < args.timeout:
@@ -152,7 +165,7 @@ def run_clock(args):
 
 def run_sim_time(args):
     """With use_sim_time, now() and timers follow /clock."""
-    node = ros.Node('sim_time_node', parameter_overrides=[Parameter('use_sim_time', value=True)])
+    node = make_node('sim_time_node', parameter_overrides=[Parameter('use_sim_time', value=True)])
     ticks = []
     node.create_timer(1.0, lambda: ticks.append(node.get_clock().now().nanoseconds / 1e9))
     spin_until(node, lambda: len(ticks) >= 5, args.timeout)
@@ -188,6 +201,68 @@ def run_foreign_writer(args):
     emit(accepted=accepted)
 
 
+def run_foreign_reader(args):
+    """A reliable, volatile reader of /hdp/instruction on another middleware (plain cyclonedds,
+    which never uses Fast DDS's shared memory): prints what it got after --timeout (it stays up,
+    and so acknowledges, as a subscriber that lives on does). --stop-on-receipt: SIGSTOPs itself
+    once a message arrives, before it acknowledges (it does on the writer's next heartbeat): a
+    reader that never acknowledges."""
+    from dataclasses import dataclass
+
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.idl import IdlStruct
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+
+    @dataclass
+    class String_(IdlStruct, typename='std_msgs::msg::dds_::String_'):
+        data: str
+
+    import cyclone_loopback
+    _domain, participant = cyclone_loopback.participant(int(os.environ['ROS_DOMAIN_ID']))
+    reader = DataReader(participant, Topic(participant, 'rt/hdp/instruction', String_),
+                        qos=Qos(Policy.Reliability.Reliable(0), Policy.History.KeepLast(10)))
+    got = []
+    end = time.monotonic() + args.timeout
+    while time.monotonic() < end:
+        got += [s.data for s in reader.take(10) if isinstance(s, String_)]     # not the writer's end
+        if got and args.stop_on_receipt:
+            os.kill(os.getpid(), signal.SIGSTOP)
+        time.sleep(0.01)
+    emit(got=got)
+
+
+def run_gripper_goals(args):
+    """Send each (position, max_effort) of --goals to the GripperCommand server in turn; print
+    whether each was accepted, its result, and the /hdp/status lines seen."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import GripperCommand
+    from rclpy.action import ActionClient
+
+    from hdp_msgs_py import topics
+    node = make_node('gripper_probe')
+    status = []
+    node.create_subscription(String, topics.STATUS, lambda m: status.append(m.data), topics.STATUS_QOS)
+    client = ActionClient(node, GripperCommand, topics.GRIPPER_ACTION)
+    spin_until(node, client.server_is_ready, args.timeout)
+    answers = []
+    for position, max_effort in json.loads(args.goals):
+        goal = GripperCommand.Goal()
+        goal.command.position, goal.command.max_effort = float(position), float(max_effort)
+        sent = client.send_goal_async(goal)
+        spin_until(node, sent.done, args.timeout)
+        if not sent.result().accepted:
+            answers.append({'accepted': False})
+            continue
+        result = sent.result().get_result_async()
+        spin_until(node, result.done, args.timeout)
+        answers.append({'accepted': True, 'succeeded': result.result().status == GoalStatus.STATUS_SUCCEEDED,
+                        'position': result.result().result.position,
+                        'reached_goal': result.result().result.reached_goal})
+    spin_until(node, lambda: False, 0.5)       # the last status lines
+    emit(answers=answers, status=status)
+
+
 def main():
     ros.init(args=sys.argv)
     argv = [a for a in sys.argv[1:]]
@@ -202,6 +277,8 @@ def main():
     parser.add_argument('--linger', type=float, default=0.0)
     parser.add_argument('--expect', type=int, default=1)
     parser.add_argument('--timeout', type=float, default=15.0)
+    parser.add_argument('--stop-on-receipt', action='store_true')
+    parser.add_argument('--goals', default='[]')
     args = parser.parse_args(argv)
     try:
         globals()[f'run_{args.role}'](args)
@@ -211,6 +288,8 @@ def main():
         # subscriber had printed what it got): end the process anyway.
         # Interpreter finalisation (leftover middleware handles) is skipped for the same reason.
         threading.Thread(target=_exit_if_hung, daemon=True).start()
+        for node in _nodes:
+            node.destroy_node()
         rclpy.try_shutdown()
 
 

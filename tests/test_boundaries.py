@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.dds
+pytestmark = pytest.mark.unit
 
 SRC = Path(__file__).resolve().parents[1] / 'src'
 PACKAGES = sorted(p.name for p in SRC.iterdir() if (p / 'package.xml').is_file())
@@ -41,6 +41,7 @@ MAY_IMPORT = {
 TORCH_FREE = ('hdp_msgs_py', 'hdp_ros', 'hdp_data', 'hdp_learning', 'hdp_tools')
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize('load', [
     'import hdp_planner.planner_node as n; n.NextBestPoseAgent.from_checkpoint(n.default_checkpoint())',
     'import hdp_controller.controller_node as n; n.load_policy("rkd", sampler="ddim")'])
@@ -52,6 +53,7 @@ def test_robot_side_nodes_load_no_simulator_and_no_planner(load):
     assert json.loads(result.stdout.splitlines()[-1]) == []
 
 
+@pytest.mark.dds
 def test_the_planning_baselines_plan_on_the_robot_without_the_simulator():
     """controller_node with method planner plans in PyBullet with OMPL, but in a kinematic scene of
     its own: the simulator package stays unloaded."""
@@ -109,6 +111,7 @@ def test_packages_import_only_what_the_layering_allows(package):
     assert not forbidden, f'{package} imports {sorted(forbidden)}; it may import {sorted(MAY_IMPORT.get(package, ()))}'
 
 
+@pytest.mark.dds
 def test_the_infrastructure_packages_import_no_torch():
     """Every module of the packages messages, nodes' helpers, data, learning rules and the `hdp`
     command come from, imported in a fresh process: torch stays unloaded."""

@@ -1,4 +1,4 @@
-"""hdp_learning.checkpoints: the one set of rules both packages' checkpoints are saved and loaded by."""
+"""hdp_learning.checkpoints: the one set of rules every checkpoint is saved and loaded by."""
 
 import os
 import random
@@ -152,6 +152,7 @@ def test_each_package_refuses_the_other_ones_checkpoint():
         agent_checkpoint.load_model(MODELS / 'rk_diffuser.pt')
 
 
+@pytest.mark.dds
 def test_importing_the_checkpoint_rules_loads_no_torch():
     probe = 'import sys, hdp_learning.checkpoints; print("torch" in sys.modules)'
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=60)

@@ -76,6 +76,33 @@ def test_topic_pub_once_reaches_a_subscriber(ros_domain):
     assert received['got'] == [{'data': 'open the drawer'}]
 
 
+def test_topic_pub_once_reaches_a_reader_that_is_not_on_shared_memory(ros_domain):
+    """A reliable reader over UDP, of another DDS vendor (plain Cyclone DDS): it takes a writer's
+    samples only from the first heartbeat after it discovered the writer, so a message published
+    as soon as pub had matched it was acknowledged and lost (every time, with the reader joining
+    after pub started, before pub waited for the reader to match it too)."""
+    pub = hdp_popen(ros_domain, 'topic', 'pub', '--once', '/hdp/instruction', 'std_msgs/msg/String',
+                    "{data: 'open the drawer'}")
+    time.sleep(1.0)                              # pub is waiting for a subscriber
+    reader = start(ros_domain, 'foreign_reader', '--timeout', '10')
+    out, err = pub.communicate(timeout=60)
+    received, _ = finish(reader)
+    assert pub.returncode == 0 and out.startswith('publishing #1'), err
+    assert received['got'] == ['open the drawer']
+
+
+def test_topic_pub_exits_1_when_a_reader_never_acknowledges(ros_domain):
+    reader = start(ros_domain, 'foreign_reader', '--stop-on-receipt', '--timeout', '60')
+    try:
+        result = hdp(ros_domain, 'topic', 'pub', '--once', '--max-wait', '3', '/hdp/instruction',
+                     'std_msgs/msg/String', "{data: 'open the drawer'}")
+    finally:
+        reader.kill()
+        reader.communicate()
+    assert result.returncode == 1 and result.stdout.startswith('publishing #1'), result.stderr
+    assert 'error: not every subscriber (1 matched) acknowledged what was published within 3.0 s' in result.stderr
+
+
 def test_topic_pub_refuses_bad_input(ros_domain):
     result = hdp(ros_domain, 'topic', 'pub', '--once', '/x', 'std_msgs/msg/String', '{colour: red}')
     assert result.returncode == 1 and "has no field 'colour'" in result.stderr
@@ -84,6 +111,7 @@ def test_topic_pub_refuses_bad_input(ros_domain):
     assert 'Traceback' not in result.stderr
 
 
+@pytest.mark.unit
 def test_pub_values_fill_nested_messages_and_arrays_of_messages():
     msg = message_from_yaml('trajectory_msgs/msg/JointTrajectory',
                             '{header: {frame_id: world}, joint_names: [j1, j2], '
@@ -97,6 +125,7 @@ def test_pub_values_fill_nested_messages_and_arrays_of_messages():
     assert message_from_yaml('geometry_msgs/msg/PoseStamped', '{pose: {position: {x: 1}}}').pose.position.x == 1.0
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize('type_name, values, error', [
     ('std_msgs/msg/String', '{data: [1, 2]}', "String.data: The 'data' field must be of type 'str'"),
     ('trajectory_msgs/msg/JointTrajectory', '{points: [{colour: red}]}', "has no field 'colour'"),
@@ -114,6 +143,7 @@ def test_pub_values_are_checked(type_name, values, error):
     assert error in str(err.value)
 
 
+@pytest.mark.unit
 def test_echo_yaml_truncates_long_arrays_unless_full_length():
     msg = message_from_yaml('sensor_msgs/msg/Image', '{height: 1, width: 40, data: [%s]}' % ', '.join(['7'] * 40))
     data = yaml.safe_load(message_to_yaml(msg))['data']

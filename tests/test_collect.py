@@ -12,7 +12,7 @@ from hdp_sim_bridge.collect import record_episode
 from hdp_sim_bridge.tasks import TASKS, make_task
 from hdp_sim_bridge.world import PandaWorld
 
-pytestmark = pytest.mark.sim
+pytestmark = pytest.mark.dds
 
 HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 
@@ -65,6 +65,7 @@ def test_keyframes_are_the_experts_rests(episodes):
             assert np.min(np.abs(keyframe_times - frame)) < 0.02, (path.name, keyframe_times, frames)
 
 
+@pytest.mark.sim
 def test_same_seed_same_episode():
     runs = []
     for _ in range(2):
@@ -90,6 +91,7 @@ def test_collect_refuses_to_overwrite(episodes):
     assert result.returncode != 0 and 'unknown task' in result.stderr
 
 
+@pytest.mark.sim
 def test_failed_demos_are_marked(tmp_path):
     with PandaWorld() as world:
         summary = record_episode(world, 'reach_target', 0, tmp_path, 64, 48)

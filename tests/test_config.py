@@ -1,4 +1,4 @@
-"""hdp_learning.config: the one --config mechanism of both trainers (sections of dataclasses,
+"""hdp_learning.config: the one --config mechanism of every trainer (sections of dataclasses,
 defaults < file < flags, unknown sections and keys refused in one line naming the known ones)."""
 
 import dataclasses
@@ -90,6 +90,7 @@ def test_overrides_are_checked_like_the_file(tmp_path):
         load_sections(None, {'train': Train}, overrides={'train': {'batch': 4}})
 
 
+@pytest.mark.dds
 def test_the_loader_and_the_launcher_helpers_import_no_torch():
     probe = 'import sys, hdp_learning.config, hdp_learning.distributed; print("torch" in sys.modules)'
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=60)
@@ -109,6 +110,7 @@ def test_the_low_level_configs_load_as_before():
         assert configs['train'] == TrainConfig(**(values.get('train') or {})), path
 
 
+@pytest.mark.dds
 def test_low_level_cli_refuses_an_unknown_key_in_one_line(tmp_path):
     config = tmp_path / 'rkd.yaml'
     config.write_text('train: {steps: 2, batch: 4}\n')

@@ -594,6 +594,7 @@ def test_a_segment_planning_refuses_fails_with_its_plan_report():
 
 # --- controller_node as a process next to sim_bridge_node -----------------------------------------
 
+@pytest.mark.dds
 @pytest.mark.parametrize('interface', ['topic', 'action'])
 def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, interface):
     """Sim in the loop, on either interface: the JointTrajectory topic, or the
@@ -699,6 +700,7 @@ if __name__ == '__main__' and sys.argv[1:2] == ['probe']:
     probe()
 
 
+@pytest.mark.dds
 def test_controller_node_refuses_an_unknown_robot_type_at_start_with_one_line(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
     proc = subprocess.run([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',

@@ -218,6 +218,7 @@ def test_trajectory_plot_is_a_png(tmp_path):
 
 # --- the command --------------------------------------------------------------------------------------
 
+@pytest.mark.dds
 def test_unknown_task_exits_2_before_starting_anything(tmp_path, ros_domain):
     proc = subprocess.run(_hdp('demo', '--task', 'nonsense', '--out', str(tmp_path / 'out')),
                           env=_env(ros_domain), capture_output=True, text=True, timeout=60)
@@ -319,6 +320,7 @@ print('after:', missing_after(3.0))
 """
 
 
+@pytest.mark.dds
 def test_the_graph_is_not_up_until_planner_node_itself_hears_instructions(ros_domain):
     """The demo's own subscriptions (a recorder's) on /hdp/instruction once counted as the
     planner's, and the first instruction of a recorded demo could be lost."""
@@ -342,6 +344,7 @@ def _node_pids(text: str) -> list[int]:
     return [int(p) for p in re.findall(r'\[demo\] started \w+ \(pid (\d+)\)', text)]
 
 
+@pytest.mark.dds
 def test_ctrl_c_stops_every_node_and_exits_130(tmp_path, ros_domain):
     proc = subprocess.Popen(_hdp('demo', '--task', 'reach_target', '--out', str(tmp_path)), env=_env(ros_domain),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -366,6 +369,7 @@ def _node_log_tails(logs: Path, lines: int = 20) -> str:
                    for log in sorted(logs.glob('*.log')))
 
 
+@pytest.mark.dds
 def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     out = tmp_path / 'demo'
     proc = subprocess.run(_hdp('demo', '--task', 'reach_target', '--seed', '1000', '--out', str(out), '--record'),

@@ -20,7 +20,7 @@ from hdp_planner.flat.encoders import observation_tensors
 from hdp_planner.flat.policy import FlatObservation, FlatPolicy
 from hdp_planner.flat.train import FlatTrainConfig, train
 
-pytestmark = pytest.mark.sim
+pytestmark = pytest.mark.dds
 
 HDP = [sys.executable, '-m', 'hdp_tools.cli.main']
 # Small and with the learned word encoder (no MiniLM load) unless a test is about the defaults.
@@ -112,6 +112,7 @@ def test_dataset_cache_is_keyed_by_image_size(episodes, tmp_path):
     assert smaller['images_front'].shape[1:] == (24, 32, 3) and len(list(tmp_path.iterdir())) == 2
 
 
+@pytest.mark.unit
 def test_downscale_averages_areas():
     image = np.zeros((4, 4, 3), np.uint8)
     image[:2, :2] = 200
@@ -123,6 +124,7 @@ def test_downscale_averages_areas():
 
 # --- networks --------------------------------------------------------------------------------
 
+@pytest.mark.unit
 def test_conditional_unet_shapes():
     unet = ConditionalUnet1D(8, 20, step_embed_dim=16, down_dims=(16, 32, 64), n_groups=4)
     x = torch.randn(3, 16, 8)

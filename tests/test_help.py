@@ -16,6 +16,7 @@ NODES = {'hdp_planner.planner_node': 'planner_node', 'hdp_controller.controller_
          'hdp_sim_bridge.sim_bridge_node': 'sim_bridge_node'}
 
 
+@pytest.mark.unit
 def test_every_hdp_command_has_help(capsys):
     assert len(COMMANDS) >= 15
     for path in [(), *sorted({c[:1] for c in COMMANDS}), *COMMANDS]:

@@ -145,6 +145,7 @@ def test_a_low_level_that_draws_noise_draws_each_episodes_from_its_seed():
     assert seeds == [4002, 4003]
 
 
+@pytest.mark.unit
 def test_seen_and_heldout_instructions_differ():
     for task in ('open_drawer', 'pick_up_cup'):
         seen, heldout = (episode_instruction(task, 7, 0, p) for p in ('seen', 'heldout'))
@@ -181,6 +182,7 @@ def test_evaluate_table_and_training_seed_refusal():
         evaluate(agent, {'nbp_planner': PlannerPolicy()}, ['reach_target'], 1, 4003, progress=False)
 
 
+@pytest.mark.dds
 def test_cli_help():
     result = subprocess.run([*HDP, 'eval', 'hierarchy', '--help'], text=True, capture_output=True, timeout=300)
     assert result.returncode == 0 and '--phrasings' in result.stdout

@@ -62,6 +62,7 @@ def test_the_launch_file_declares_its_arguments_and_passes_them_on(monkeypatch, 
                           'controller_node': ['/robot/params.yaml', {'method': 'planner'}]}
 
 
+@pytest.mark.dds
 def test_hdp_launch_takes_the_same_arguments(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1')
     graph = subprocess.Popen([sys.executable, '-m', 'hdp_tools.cli.main', 'launch', '--nodes', 'sim_bridge_node',

@@ -160,6 +160,7 @@ def test_oracle_nbps_are_the_keyframes_of_the_recorded_demo(world, tmp_path):
         assert gripper_open == recorded_open
 
 
+@pytest.mark.unit
 def test_repeated_nbps_are_merged():
     pose = np.array([0.5, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0])
     nudged = pose + np.array([0.001, 0, 0, 0, 0, 0, 0])
@@ -198,6 +199,7 @@ def test_always_failing_ik_gives_zero_success_and_full_ik_error():
     assert [r['failure'] for r in records] == ['ik_error', 'ik_error']
 
 
+@pytest.mark.unit
 def test_overlapping_training_seeds_raise():
     planner = PlannerPolicy()
     planner.training_seeds = {'reach_target': [5001, 5002, 7]}
@@ -209,6 +211,7 @@ def test_overlapping_training_seeds_raise():
         evaluate({'planner': PlannerPolicy()}, ['reach_target'], 0, 0, progress=False)
 
 
+@pytest.mark.dds
 def test_workers_give_the_serial_results():
     def outcome(workers):
         results = evaluate({'planner': PlannerPolicy()}, ['reach_target'], 2, SEED, workers, progress=False)
@@ -217,6 +220,7 @@ def test_workers_give_the_serial_results():
     assert outcome(2) == outcome(1)
 
 
+@pytest.mark.unit
 def test_markdown_table_layout():
     def cell(success, ik, n=4):
         return {'episodes': n, 'success_rate': success, 'ik_error_rate': ik}
@@ -232,6 +236,7 @@ def test_markdown_table_layout():
 
 # --- command line ----------------------------------------------------------------------------
 
+@pytest.mark.dds
 def test_cli_help_and_a_planner_run():
     out = subprocess.run([*HDP, 'eval', 'low-level', '--help'], text=True, capture_output=True, check=True).stdout
     assert '--methods' in out and '--seed-start' in out and '--workers' in out
@@ -243,6 +248,7 @@ def test_cli_help_and_a_planner_run():
     assert '| planner | 100% / 0% | 100% / 0% |' in result.stdout
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize('args, message', [
     (['--tasks', 'fly'], 'unknown task'),
     (['--methods', 'magic'], 'unknown method'),
@@ -259,6 +265,7 @@ def test_cli_refuses_bad_arguments(args, message):
     assert result.returncode != 0 and message in result.stderr
 
 
+@pytest.mark.dds
 def test_torchrun_shards_the_episodes_and_gathers_one_result(tmp_path):
     """Two processes under torchrun take every other episode; rank 0 prints one table and writes one
     result file with every episode, as one process does."""

@@ -11,7 +11,7 @@ import pytest
 from hdp_motion import panda, planning, timing
 from hdp_motion.panda import HOME, LOWER, UPPER, VELOCITY_LIMITS
 
-pytestmark = pytest.mark.sim
+pytestmark = pytest.mark.unit
 
 DOWN = np.array([1.0, 0.0, 0.0, 0.0])        # gripper pointing at the floor
 LEFT, RIGHT = np.array([0.45, -0.3, 0.25]), np.array([0.45, 0.3, 0.25])
@@ -114,7 +114,7 @@ def test_planning_leaves_the_simulated_robot_alone(world):
     planning._set_arm(client, robot, q_left, velocities)
     planning.plan_to_pose(client, robot, q_left, RIGHT, DOWN, [floor, wall])
     planning.solve_ik(client, robot, RIGHT, DOWN, HOME)
-    states = p.getJointStates(robot, planning.ARM_JOINT_IDS, physicsClientId=client)
+    states = p.getJointStates(robot, panda.ARM_JOINT_IDS, physicsClientId=client)
     assert np.array_equal([s[0] for s in states], q_left)
     assert np.allclose([s[1] for s in states], velocities)
     planning._set_arm(client, robot, q_left)

@@ -236,6 +236,7 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
         checkpoint.load(tmp_path / 'other.pt')
 
 
+@pytest.mark.dds
 def test_train_continues_refuses_other_options_and_fine_tunes_with_the_union_of_seeds(episodes, tmp_path):
     data = episodes
     config = ModelConfig(vocabulary=tuple(language.task_vocabulary()), **TINY)
@@ -287,6 +288,7 @@ def test_train_config_defaults_are_train_defaults_and_the_released_recipe_is_the
         k: getattr(configs['train'], k) for k in ('steps', 'batch', 'lr', 'seed')}
 
 
+@pytest.mark.dds
 def test_train_cli_config_unknown_keys_and_bad_values_fail_with_one_line(tmp_path):
     config = tmp_path / 'agent.yaml'
     base = [*HDP, 'train', 'high-level', '--data', str(tmp_path), '--out', str(tmp_path / 'a.pt'), '--config',
@@ -314,6 +316,7 @@ def test_train_cli_config_unknown_keys_and_bad_values_fail_with_one_line(tmp_pat
         assert refused.returncode != 0 and refused.stderr.strip() == expected, refused.stderr
 
 
+@pytest.mark.dds
 def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path):
     """DDP over gloo: both ranks end with identical weights (the trainer compares their digests
     at every save and refuses to go on otherwise; the checkpoint records the digest), and two
@@ -476,6 +479,7 @@ def test_an_agent_trained_on_the_hand_pose_reads_it_from_the_joint_positions():
         ModelConfig(vocabulary=('open',), proprio='elbow')
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize('command', [['train', 'high-level'], ['eval', 'high-level-offline']])
 def test_cli_help(command):
     result = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', *command, '--help'],

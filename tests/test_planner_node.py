@@ -286,12 +286,13 @@ def test_a_missing_result_lets_a_queued_instruction_start():
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
     loop.step(0.1, 1)
-    loop.on_instruction('pick up the cup', 1.0)
+    assert _texts(loop.on_instruction('pick up the cup', 1.0)) == [
+        "instruction 'pick up the cup' waits: it replaces 'open the drawer' when segment 1 ends"]
     out = loop.step(10.2, 2)
     assert _texts(out) == ['segment 1: no result from the controller within 10.0 s (is controller_node running?)',
-                           "instruction 'open the drawer': replaced by a new instruction",
-                           "instruction 'pick up the cup': up to 3 segments"]
+                           "instruction 'open the drawer': replaced by 'pick up the cup'"]
     assert _outcomes(out) == [('open the drawer', 'replaced', 1)]
+    assert _texts(loop.step(10.3, 3))[0] == "instruction 'pick up the cup': up to 3 segments"
 
 
 def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_the_result():
@@ -299,13 +300,68 @@ def test_a_failed_segment_stops_the_instruction_and_a_queued_one_starts_after_th
     feed_frames(loop.observations, 1.0)
     loop.on_instruction('open the drawer', 0.0)
     stamp = _sent(loop.step(0.1, 1)).nbp.header.stamp
-    assert 'queued' in _texts(loop.on_instruction('pick up the cup', 0.2))[0]
+    assert 'waits' in _texts(loop.on_instruction('pick up the cup', 0.2))[0]
     out = loop.on_result(_result(stamp, 'failed: no path'), 1.0)
     assert _texts(out) == ['segment 1: pose (0.500, 0.100, 0.900) gripper close -> failed: no path in 0.9 s',
-                           "instruction 'open the drawer': segment 1 failed: no path",
-                           "instruction 'pick up the cup': up to 3 segments"]
+                           "instruction 'open the drawer': segment 1 failed: no path"]
     assert _outcomes(out) == [('open the drawer', 'failed', 1)]
-    assert loop.instruction == 'pick up the cup' and loop.queued is None
+    assert _texts(loop.step(1.1, 2))[0] == "instruction 'pick up the cup': up to 3 segments"
+    assert loop.instruction == 'pick up the cup' and not loop.waiting
+
+
+def _burst(loop, count: int, start_s: float = 0.0) -> list:
+    """``count`` distinct instructions 20 ms apart, as the probe sent them; every record returned."""
+    out = []
+    for i in range(count):
+        out += loop.on_instruction(f'open the drawer {i}', start_s + 0.02 * i)
+    return out
+
+
+def test_replace_a_burst_gets_one_outcome_each_and_the_newest_runs():
+    loop = _loop()                                  # queue_policy replace, the default
+    out = _burst(loop, 50)
+    assert [o[:2] for o in _outcomes(out)] == [(f'open the drawer {i}', 'replaced') for i in range(49)]
+    assert loop.instruction is None and list(loop.waiting) == ['open the drawer 49']
+    loop.step(1.0, 1)
+    assert loop.instruction == 'open the drawer 49'
+    out = loop.step(3.1, 2)                         # no frames: the camera timeout ends it
+    assert _outcomes(out) == [('open the drawer 49', 'failed', 0)]
+
+
+def test_queue_takes_instructions_in_turn_and_refuses_beyond_max_queued():
+    loop = _loop(queue_policy='queue', max_queued=3)
+    out = _burst(loop, 6)
+    assert _outcomes(out) == [('open the drawer 4', 'refused', 0), ('open the drawer 5', 'refused', 0)]
+    assert [o.reason for o in out if type(o) is Outcome] == ['queue full: 3 instructions wait (max_queued 3)'] * 2
+    assert loop.instruction == 'open the drawer 0' and list(loop.waiting) == [f'open the drawer {i}' for i in (1, 2, 3)]
+    ended = []
+    for t in range(1, 40):                           # each times out waiting for frames, then the next starts
+        ended += _outcomes(loop.step(float(t), t))
+    assert [(o[0], o[1]) for o in ended] == [(f'open the drawer {i}', 'failed') for i in range(4)]
+
+
+def test_refuse_keeps_the_running_instruction():
+    loop = _loop(queue_policy='refuse')
+    out = _burst(loop, 3)
+    assert _outcomes(out) == [('open the drawer 1', 'refused', 0), ('open the drawer 2', 'refused', 0)]
+    assert "busy: 'open the drawer 0' is running" in [o.reason for o in out if type(o) is Outcome][0]
+    assert loop.instruction == 'open the drawer 0'
+
+
+def test_stop_shutdown_and_a_lost_robot_answer_the_waiting_instructions_too():
+    for end, result in (('stop', 'stopped'), ('shutdown', 'shutdown'), ('robot_gone', 'failed')):
+        loop = _loop(queue_policy='queue')
+        _burst(loop, 3)
+        out = {'stop': lambda: loop.stop('an operator pressed stop', 1.0), 'shutdown': lambda: loop.shutdown(1.0),
+               'robot_gone': lambda: loop.robot_gone('no /joint_states for 5.0 s', 1.0)}[end]()
+        assert sorted(o[:2] for o in _outcomes(out)) == [(f'open the drawer {i}', result) for i in range(3)], end
+        assert loop.instruction is None and not loop.waiting
+        assert loop.step(2.0, 2) == []
+
+
+def test_an_unknown_queue_policy_is_refused():
+    with pytest.raises(ValueError, match='queue_policy must be one of replace, queue, refuse'):
+        _loop(queue_policy='newest')
 
 
 def test_a_robot_that_stops_answering_fails_the_instruction_naming_why():
@@ -410,6 +466,7 @@ def _status_listener(env, expect: int, seconds: float, *publish) -> subprocess.P
                             env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
+@pytest.mark.dds
 def test_planner_node_refuses_bad_instructions_and_reports_a_camera_timeout(ros_domain, tiny_checkpoint):
     env = _env(ros_domain)
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
@@ -439,6 +496,39 @@ def test_planner_node_refuses_bad_instructions_and_reports_a_camera_timeout(ros_
     assert planner.returncode == 0, planner_err
 
 
+@pytest.mark.dds
+@pytest.mark.parametrize('policy, camera_timeout_s', [('replace', 0.3), ('queue', 2.5)])
+def test_a_burst_of_fifty_instructions_gets_fifty_outcomes(ros_domain, tiny_checkpoint, policy, camera_timeout_s):
+    """The probe's burst: 50 instructions 20 ms apart. Each is answered once on /hdp/outcome: under
+    replace all but the last are replaced (the last fails: no camera publishes); under queue
+    (max_queued 10) the overflow is refused at once and the others run in turn, each failing after
+    camera_timeout_s, which frees a place every 2.5 s (how many get one depends on how long the
+    burst takes on a loaded machine: at most 11 + its seconds / 2.5)."""
+    env = _env(ros_domain)
+    planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', f'checkpoint:={tiny_checkpoint}', '-p', f'camera_timeout_s:={camera_timeout_s}',
+                                '-p', f'queue_policy:={policy}', '-p', 'max_queued:=10'],
+                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        sender = subprocess.Popen([sys.executable, __file__, 'burst', '50', '0.02', '45'], env=env, text=True,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        out, err = sender.communicate(timeout=90)
+    finally:
+        planner_err, = _stop(planner)
+    assert sender.returncode == 0, err + planner_err
+    outcomes = json.loads(out.strip().splitlines()[-1])['outcomes']
+    assert sorted(o['instruction'] for o in outcomes) == sorted(f'open the drawer {i}' for i in range(50))
+    results = [o['result'] for o in outcomes]
+    if policy == 'replace':
+        assert sorted(results) == ['failed'] + ['replaced'] * 49
+        assert next(o for o in outcomes if o['result'] == 'failed')['instruction'] == 'open the drawer 49'
+    else:
+        refused = [o for o in outcomes if o['result'] == 'refused']
+        assert len(refused) >= 30 and results.count('failed') == 50 - len(refused)
+        assert {o['reason'] for o in refused} == {'queue full: 10 instructions wait (max_queued 10)'}
+
+
+@pytest.mark.dds
 def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_domain, tiny_checkpoint):
     env = _env(ros_domain)
     bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
@@ -502,6 +592,7 @@ def _collect_lines(proc) -> tuple[list[str], threading.Thread]:
     return lines, reader
 
 
+@pytest.mark.dds
 def test_hdp_launch_starts_the_graph_prefixes_output_and_stops_on_sigint(ros_domain, tmp_path, tiny_checkpoint):
     params = _graph_yaml(tmp_path, tiny_checkpoint)
     launch = _launch(ros_domain, params, '-p', 'controller_node:method:=planner')
@@ -522,6 +613,7 @@ def test_hdp_launch_starts_the_graph_prefixes_output_and_stops_on_sigint(ros_dom
     assert '[launch] SIGINT: stopping the nodes' in text
 
 
+@pytest.mark.dds
 def test_hdp_launch_exit_on_node_exit_stops_the_graph_when_a_node_dies(ros_domain, tmp_path):
     params = _graph_yaml(tmp_path, tmp_path / 'missing.pt')
     launch = _launch(ros_domain, params, '--nodes', 'planner_node,controller_node', '--exit-on-node-exit',
@@ -539,6 +631,7 @@ def _wait_for(lines, proc, predicate, seconds: float) -> bool:
     return predicate('\n'.join(lines))
 
 
+@pytest.mark.dds
 def test_hdp_launch_keeps_the_other_nodes_by_default_and_respawns_on_request(ros_domain, tmp_path):
     """As ros2 launch: a node that dies leaves the rest running; --respawn starts it again."""
     params = _graph_yaml(tmp_path, tmp_path / 'missing.pt')
@@ -607,6 +700,25 @@ def listen(expect: int, seconds: float, *instructions: str) -> None:
     rclpy.try_shutdown()
 
 
+def burst(count: int, interval_s: float, seconds: float) -> None:
+    """Publish ``count`` instructions ``interval_s`` apart once the planner listens; print the outcomes."""
+    from hdp_msgs_py.msg import String
+    node, status = _node('instruction_burst')
+    outcomes = []
+    node.create_subscription(String, topics.OUTCOME, lambda m: outcomes.append(json.loads(m.data)),
+                             topics.INSTRUCTION_QOS)
+    instruction = node.create_publisher(String, topics.INSTRUCTION, topics.INSTRUCTION_QOS)
+    assert _spin(node, 60, lambda: instruction.get_subscription_count() > 0), 'planner_node did not come up'
+    _spin(node, 0.5)
+    for i in range(count):
+        instruction.publish(String(data=f'open the drawer {i}'))
+        _spin(node, interval_s)
+    _spin(node, seconds, lambda: len(outcomes) >= count)
+    print(json.dumps({'status': status, 'outcomes': outcomes}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
 def controller() -> None:
     """Stand in for controller_node: answer each NBP 'done' after a moment; report what came."""
     from hdp_data import workspace
@@ -654,4 +766,5 @@ def controller() -> None:
 
 if __name__ == '__main__':
     {'listen': lambda: listen(int(sys.argv[2]), float(sys.argv[3]), *sys.argv[4:]),
+     'burst': lambda: burst(int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])),
      'controller': controller}[sys.argv[1]]()

@@ -92,6 +92,7 @@ def test_resampling_and_rank():
     assert trajectory_rank(np.zeros((5, 3))) == 1.0
 
 
+@pytest.mark.dds
 def test_segments_end_at_the_keyframes_the_high_level_uses(episodes, segments):
     expected = 0
     for path in list_episodes(episodes):
@@ -110,6 +111,7 @@ def test_segments_end_at_the_keyframes_the_high_level_uses(episodes, segments):
     assert segments.training_seeds() == {'open_drawer': [11], 'reach_target': [11]}
 
 
+@pytest.mark.dds
 def test_start_end_augmentation_stays_on_the_path(segments):
     item = SegmentDataset(segments)[0]
     plain = augment({k: v[None] for k, v in item.items()})
@@ -125,6 +127,7 @@ def test_start_end_augmentation_stays_on_the_path(segments):
         assert gap_end <= (plain['joints'][0, -1] - plain['joints'][0, -6]).abs().max() + 1e-5
 
 
+@pytest.mark.dds
 def test_goal_augmentation_bends_the_path_to_a_goal_fk_agrees_with(segments):
     """The start stays, the goal moves, and poses, goal pose and rank are the bent path's."""
     batch = _batch(segments, 16, seed=3)
@@ -146,6 +149,7 @@ def test_goal_augmentation_bends_the_path_to_a_goal_fk_agrees_with(segments):
     assert drawn['trims'].min() == 0 and drawn['trims'].max() == 5
 
 
+@pytest.mark.dds
 def test_preprocessing_is_cached(episodes, tmp_path):
     first = load_segments(episodes, n_points=64, cache_dir=tmp_path, workers=1)
     assert len(list(tmp_path.glob('*.npz'))) == 1
@@ -153,6 +157,7 @@ def test_preprocessing_is_cached(episodes, tmp_path):
     assert np.array_equal(first.joints, again.joints) and np.array_equal(first.task, again.task)
 
 
+@pytest.mark.dds
 def test_training_data_can_be_a_segments_file_and_bad_ones_are_refused(episodes, tmp_path):
     direct = load_segments(episodes, n_points=64, cache_dir=tmp_path, workers=1)
     cache, = tmp_path.glob('*.npz')
@@ -206,6 +211,7 @@ def test_sampling_holds_inpainted_waypoints():
         assert torch.equal(x[:, 0], known[0]) and torch.equal(x[:, -1], known[-1])
 
 
+@pytest.mark.dds
 def test_training_reduces_the_loss(segments):
     torch.manual_seed(0)
     model = RKDiffuser(SMALL)
@@ -223,6 +229,7 @@ def test_training_reduces_the_loss(segments):
     assert losses[-1] < 0.5 * losses[0]
 
 
+@pytest.mark.dds
 def test_goal_and_smoothness_terms_join_the_loss(segments):
     config = RKDConfig(**{**SMALL.__dict__, 'goal_loss_weight': 2.0, 'goal_loss': 'distance',
                           'smooth_loss_weight': 10.0})
@@ -259,6 +266,7 @@ def test_distance_goal_loss_keeps_pulling_at_centimetres():
     assert gradient(0.01, 'distance') > 0.7 * gradient(0.1, 'distance')
 
 
+@pytest.mark.dds
 def test_sample_returns_goal_pose_and_joints_in_limits(segments):
     model = RKDiffuser(SMALL).eval()
     batch = _batch(segments, 2)
@@ -450,6 +458,7 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
         checkpoint.load_model(tmp_path / 'shape.pt')
 
 
+@pytest.mark.dds
 def test_validation_losses_go_into_the_curves_and_training_episodes_are_refused(episodes, tmp_path):
     from hdp_controller.train import TrainConfig, train
     segs = load_segments(episodes, n_points=64, cache_dir=tmp_path, workers=1)
@@ -470,6 +479,7 @@ def test_validation_losses_go_into_the_curves_and_training_episodes_are_refused(
               val_data=episodes, log=quiet)
 
 
+@pytest.mark.dds
 def test_train_cli_runs_and_resumes(episodes, tmp_path):
     config = tmp_path / 'small.yaml'
     config.write_text('model: {unet_dim: 8, point_features: 16, point_width: 8, n_points: 64, diffusion_steps: 10}\n'
@@ -561,6 +571,7 @@ def _torchrun(launch: str, arguments: list, env: dict, port: int) -> list:
     return results
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize('launch', ['standalone', 'two_nodes'])
 def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path, launch):
     """DDP over gloo: both ranks end with identical weights (the trainer compares their
@@ -590,6 +601,7 @@ def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path
     assert (tmp_path / 'one_curves.csv').is_file() and (tmp_path / 'two_curves.csv').is_file()
 
 
+@pytest.mark.dds
 def test_sample_quality_measures_a_perfect_sampler_as_perfect_and_refuses_training_seeds(episodes, segments,
                                                                                        tmp_path):
     from hdp_eval.sample_quality import measure, summary

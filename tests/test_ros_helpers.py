@@ -1,6 +1,9 @@
-"""hdp_ros.ros: the Fast DDS profile every process gets, and what it does to the sockets."""
+"""hdp_ros.ros: the Fast DDS profile every process gets, what it does to the sockets, and the
+shared memory of dead processes it removes."""
 
+import fcntl
 import os
+import re
 import signal
 import socket
 import threading
@@ -9,7 +12,7 @@ import xml.etree.ElementTree as ElementTree
 
 import pytest
 
-from hdp_ros import ros
+from hdp_ros import ros, shm
 from test_dds_processes import finish, start
 
 pytestmark = pytest.mark.unit
@@ -62,6 +65,7 @@ def _udp_addresses(pid: int) -> list[str]:
     return addresses
 
 
+@pytest.mark.dds
 def test_a_node_listens_on_loopback_only(ros_domain):
     sub = start(ros_domain, 'sub', 'string', '--timeout', '30')
     try:
@@ -74,6 +78,67 @@ def test_a_node_listens_on_loopback_only(ros_domain):
         sub.terminate()
         finish(sub)
     assert addresses and set(addresses) == {'127.0.0.1'}, addresses
+
+
+def _segments_of(pid: int) -> set[str]:
+    """The Fast DDS segments process ``pid`` owns: it holds their lock files open."""
+    segments = set()
+    for fd in os.listdir(f'/proc/{pid}/fd'):
+        try:
+            target = os.readlink(f'/proc/{pid}/fd/{fd}')
+        except OSError:
+            continue
+        if match := re.fullmatch(r'/dev/shm/(fastrtps_[0-9a-z]{16})_el', target):
+            segments.add(match.group(1))
+    return segments
+
+
+@pytest.mark.dds
+def test_a_sigkilled_nodes_shared_memory_is_gone_once_a_node_starts_again(ros_domain):
+    def node():
+        proc = start(ros_domain, 'pub', 'string', '--count', '1', '--linger', '60')
+        proc.stdout.readline()                  # it has published: its participant is up
+        return proc
+
+    first = node()
+    segments = _segments_of(first.pid)
+    time.sleep(shm.MIN_AGE_S)                   # lock files younger than this are left alone
+    first.kill()
+    first.communicate()
+    assert segments and all((shm.SHM_DIR / s).is_file() for s in segments)      # SIGKILL cleans nothing
+    assert {p.name for p in shm.dead_segments()} >= segments
+    second = node()                             # the restart: ros.init() removes them
+    try:
+        left = [s for s in segments if (shm.SHM_DIR / s).exists() or (shm.SHM_DIR / f'{s}_el').exists()]
+        alive = _segments_of(second.pid)
+        assert alive and all((shm.SHM_DIR / s).is_file() for s in alive)       # a live one's stays
+    finally:
+        second.terminate()
+        second.communicate()
+    assert left == []
+
+
+def test_only_segments_whose_lock_nobody_holds_are_removed(tmp_path):
+    def segment(name: str, age_s: float) -> None:
+        for path in (tmp_path / name, tmp_path / f'{name}_el'):
+            path.touch()
+            os.utime(path, (time.time() - age_s,) * 2)
+
+    segment('fastrtps_00000000000000d1', 60.0)          # owner gone
+    segment('fastrtps_00000000000000a1', 60.0)          # owner alive: holds the lock
+    segment('fastrtps_00000000000000c1', 0.5)           # just created: maybe not locked yet
+    (tmp_path / 'fastrtps_port7411').touch()
+    (tmp_path / 'fastrtps_port7411_el').touch()          # a port: Fast DDS's own to reset
+    held = os.open(tmp_path / 'fastrtps_00000000000000a1_el', os.O_RDONLY)
+    fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)    # another open file description: as another process
+    try:
+        assert shm.dead_segments(tmp_path) == [tmp_path / 'fastrtps_00000000000000d1']
+        assert shm.remove_dead_segments(tmp_path) == 1
+    finally:
+        os.close(held)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        'fastrtps_00000000000000a1', 'fastrtps_00000000000000a1_el', 'fastrtps_00000000000000c1',
+        'fastrtps_00000000000000c1_el', 'fastrtps_port7411', 'fastrtps_port7411_el']
 
 
 def test_liveness_names_silent_joint_states_and_a_clock_that_stands_still():
@@ -101,6 +166,7 @@ class _Quiet(ros.Node):
         super().__init__('quiet')
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize('shutdown', ['context_down', 'ctrl_c', 'context_down_late', 'none'])
 def test_run_takes_an_error_from_a_shutdown_mid_take_as_the_shutdown_it_is(monkeypatch, ros_domain, shutdown):
     """SIGINT during a subscription's message conversion: rclpy may have shut its context down

@@ -133,6 +133,7 @@ def test_decoded_values_are_the_ones_sent(typestore, wire):
     assert goal.goal_time_tolerance.nanosec == 500_000_000
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize('package, kind, name', [
     ('tf2_msgs', 'msg', 'TFMessage'), ('control_msgs', 'msg', 'JointTolerance'),
     ('control_msgs', 'msg', 'GripperCommand'), ('control_msgs', 'action', 'FollowJointTrajectory'),

@@ -42,6 +42,7 @@ def minilm_model(seed=0) -> NextBestPoseNet:
                                        **TINY))
 
 
+@pytest.mark.dds
 def test_the_packaged_weights_are_upstreams_and_load_with_no_network():
     weights = sentence_encoder.model_dir() / 'model.safetensors'
     assert 'site-packages' in str(weights) and hashlib.sha256(weights.read_bytes()).hexdigest() == UPSTREAM_SHA256

@@ -12,9 +12,10 @@ import pytest
 
 from hdp_sim_bridge.bridge import gripper_target, parse_cameras, parse_reset
 
-pytestmark = pytest.mark.dds
+pytestmark = pytest.mark.unit
 
 
+@pytest.mark.dds
 def test_bridge_node_end_to_end(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
     node = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
@@ -91,6 +92,7 @@ def test_camera_selections_are_validated_and_keep_the_cameras_order():
             parse_cameras(bad, known)
 
 
+@pytest.mark.dds
 def test_a_bad_first_episode_stops_the_node_at_start_with_one_line(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
     proc = subprocess.run([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
@@ -140,6 +142,7 @@ def test_link_transforms_chain_to_the_simulators_hand_pose_and_the_urdf_loads():
     assert meshes and all(m.scheme == 'file' and Path(m.path).is_file() for m in meshes)
 
 
+@pytest.mark.dds
 def test_the_actions_have_ros_2s_names_and_types_on_the_wire(ros_domain):
     """Seen from a process with no HDP code (plain Cyclone DDS): the sim serves
     FollowJointTrajectory and GripperCommand under the names and DDS types ROS 2 gives them."""
@@ -167,3 +170,34 @@ def test_the_actions_have_ros_2s_names_and_types_on_the_wire(ros_domain):
         assert (f'rt/{action}/_action/feedback',
                 f'control_msgs::action::dds_::{kind}_FeedbackMessage_') in publications
         assert (f'rt/{action}/_action/status', 'action_msgs::msg::dds_::GoalStatusArray_') in publications
+
+
+@pytest.mark.dds
+def test_gripper_goals_are_refused_with_a_status_line_and_answered_in_franka_gripper_units(ros_domain):
+    """franka_gripper's gripper_action: position is half the width, in the goal and the result
+    alike; a goal it cannot act on is refused (not accepted and then aborted) with a status line."""
+    from test_dds_processes import finish, start
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
+    node = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                             '-p', 'camera_rate_hz:=0.0'], env=env, text=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    nan, inf = float('nan'), float('inf')
+    bad = [(nan, 20), (inf, 20), (-0.02, 20), (1e9, 20), (0.04, nan), (0.04, -5), (0.04, inf)]
+    try:
+        probe = start(ros_domain, 'gripper_goals', '--timeout', '60',
+                      '--goals', json.dumps([*bad, (0.0, 20), (0.04, 20)]))     # NaN, Infinity: Python's JSON
+        facts, _ = finish(probe, timeout=120)
+    finally:
+        node.send_signal(signal.SIGINT)
+        _, node_err = node.communicate(timeout=20)
+    answers = facts['answers']
+    assert answers[:len(bad)] == [{'accepted': False}] * len(bad), (answers, node_err)
+    refusals = [s for s in facts['status'] if s.startswith('sim_bridge_node: rejected gripper goal: ')]
+    assert [r.split(', got ')[-1] for r in refusals] == ['nan', 'inf', '-0.02', '1000000000.0', 'nan', '-5.0', 'inf']
+    assert refusals[0].endswith('position (half the width) must be within [0, 0.04] m, got nan')
+    assert refusals[-1].endswith('max_effort must be a finite force >= 0 N, got inf')
+    closed, opened = answers[len(bad):]
+    assert closed['accepted'] and closed['succeeded'] and closed['reached_goal'] and closed['position'] < 0.0025
+    assert opened['accepted'] and opened['succeeded'] and opened['reached_goal']
+    assert opened['position'] == pytest.approx(0.04, abs=0.0025)        # half the 0.08 m width, as asked
+    assert node.returncode == 0, node_err

@@ -322,6 +322,7 @@ def test_grasp_survives_small_fights_and_breaks_on_large_ones(world):
     assert world.grasped_body() is None and world.grasp_lost_count == 1
 
 
+@pytest.mark.dds
 def test_a_simulator_process_leaves_no_generated_urdfs_behind(tmp_path):
     """Every collection worker and evaluation rank writes object URDFs; a finished one removes them."""
     script = ('from hdp_sim_bridge import objects; import pathlib; '

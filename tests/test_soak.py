@@ -13,6 +13,7 @@ from hdp_bringup import soak
 pytestmark = pytest.mark.dds
 
 
+@pytest.mark.unit
 def test_one_fault_in_every_n_episodes_in_turn():
     schedule = [soak.fault_of(i, 10) for i in range(80)]
     assert [(i, f) for i, f in enumerate(schedule) if f] == [
@@ -21,6 +22,7 @@ def test_one_fault_in_every_n_episodes_in_turn():
     assert [soak.fault_of(i, 1) for i in range(5)] == [*soak.FAULTS, 'camera_stop']
 
 
+@pytest.mark.unit
 def test_rss_is_read_from_proc_and_growth_is_relative(tmp_path):
     assert 1.0 < soak.rss_mib(os.getpid()) < 100_000
     (tmp_path / '7').mkdir()

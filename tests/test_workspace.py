@@ -88,6 +88,7 @@ def test_colcon_meta_names_real_packages():
     assert set(meta['names']) <= set(PACKAGES)
 
 
+@pytest.mark.dds
 @pytest.mark.timeout(300)
 def test_colcon_build_installs_ros_layout(tmp_path):
     ws = tmp_path / 'ws'

@@ -36,6 +36,7 @@ setup(
             'eval.hierarchy = hdp_eval.cli:configure_hierarchy',
             'plot.low-level = hdp_eval.cli:configure_plot',
             'plot.curves = hdp_eval.curves_plot:configure',
+            'plot.sensor = hdp_eval.sensor_figure:configure',
             'eval.samples = hdp_eval.sample_quality:configure',
             'bench.controller = hdp_eval.bench:configure',
         ],

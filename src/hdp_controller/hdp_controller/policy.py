@@ -21,7 +21,7 @@ from hdp_learning import checkpoints, distributed
 
 from . import checkpoint
 from .low_level import PlanResult, Scene, SegmentRequest, nearest_of_draws, within
-from .methods import LEARNED, METHODS  # noqa: F401  (re-exported: controller_node reads them here)
+from .methods import METHODS
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses, track
 from .rk_diffuser import RKDiffuser, as_batch
 

@@ -36,7 +36,38 @@ def configure(parser) -> None:
     parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1); under torchrun, '
                         'per rank: the ranks share the episodes and rank 0 prints and writes the result')
     parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
+    add_sensor_arguments(parser, graph=False)
     parser.set_defaults(func=run)
+
+
+def add_sensor_arguments(parser, graph: bool) -> None:
+    """The cameras' realism, as sim_bridge_node's parameters set it (hdp_sim_bridge README: Sensor model);
+    graph: also the latency and the camera rate, which only a closed loop feels."""
+    parser.add_argument('--sensor-profile', choices=('ideal', 'd415'), default='ideal',
+                        help='camera sensor model: ideal renders (default) or a D415\'s noise, holes and '
+                             'colour jitter (hdp_sim_bridge.sensor_model)')
+    parser.add_argument('--extrinsic-error-mm', type=float, default=0.0, metavar='MM',
+                        help='calibration error: the cameras render from this far from where /tf_static (and '
+                             'the nodes) think they are, a random direction per episode (default 0)')
+    parser.add_argument('--extrinsic-error-deg', type=float, default=0.0, metavar='DEG',
+                        help='calibration error: and turned this much about a random axis (default 0)')
+    if graph:
+        parser.add_argument('--latency-ms', type=float, default=0.0, metavar='MS',
+                            help='frames reach the planner and controller this long after their exposure stamp '
+                                 '(the hierarchical rows; default 0)')
+        parser.add_argument('--camera-hz', type=float, default=None, metavar='HZ',
+                            help='camera frames per sim second for the hierarchical rows (a D415 streams 6, 15 '
+                                 "or 30; default: the graph's 2)")
+
+
+def sensor_settings(args):
+    """The SensorSettings of add_sensor_arguments' flags; SystemExit on a bad value."""
+    from hdp_sim_bridge.sensor_model import SensorSettings, profile_named
+    try:
+        return SensorSettings(profile_named(args.sensor_profile), args.extrinsic_error_mm, args.extrinsic_error_deg,
+                              getattr(args, 'latency_ms', 0.0))
+    except ValueError as err:
+        raise SystemExit(f'--extrinsic-error-mm, --extrinsic-error-deg and --latency-ms: {err}') from None
 
 
 def _tasks(text: str) -> list[str]:
@@ -74,12 +105,13 @@ def run(args) -> int:
     if args.rkd_draws is not None:
         sampling['draws'] = args.rkd_draws
     names = _names(args.methods, METHODS, 'method')
+    sensor = sensor_settings(args)
     start = time.monotonic()
     try:
         device = distributed.start(distributed.torch_device(args.device))[2]     # each rank its own GPU
         methods = {name: load_policy(name, args.checkpoint, args.sampler, device=device, **sampling)
                    for name in names}
-        results = evaluate(methods, tasks, args.episodes, args.seed_start, args.workers)
+        results = evaluate(methods, tasks, args.episodes, args.seed_start, args.workers, sensor=sensor)
     except ValueError as err:
         print(err, file=sys.stderr)
         return 1
@@ -90,7 +122,7 @@ def run(args) -> int:
     if skipped:
         print(f'\nSkipped (the expert failed, so there are no oracle NBPs): {skipped}')
     print(f'\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {args.workers} worker(s), '
-          f'{(time.monotonic() - start) / 60:.1f} min')
+          f'{(time.monotonic() - start) / 60:.1f} min; front camera: {sensor.summary()}')
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
@@ -172,6 +204,7 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--threads', type=int, help='torch CPU threads')
     parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     parser.add_argument('--json', type=Path, help='also write the results here')
+    add_sensor_arguments(parser, graph=True)
     parser.set_defaults(func=run_hierarchy)
 
 
@@ -207,6 +240,9 @@ def run_hierarchy(args) -> int:
     if args.flat_max_seconds <= 0 or args.think_s < 0 or plan_attempts < 1 or args.max_segments < 1:
         raise SystemExit('--flat-max-seconds must be > 0, --think-s >= 0, --plan-attempts >= 1 and '
                          '--max-segments >= 1')
+    if args.camera_hz is not None and not args.camera_hz > 0:
+        raise SystemExit(f'--camera-hz must be > 0, got {args.camera_hz}')
+    sensor = sensor_settings(args)
     if args.threads:
         torch.set_num_threads(args.threads)
     hierarchical = [name for name in agents if name in AGENTS]
@@ -228,8 +264,10 @@ def run_hierarchy(args) -> int:
         raise SystemExit(f'hdp eval hierarchy: {err}') from None
     min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     try:
+        cameras = {} if args.camera_hz is None else {'camera_hz': args.camera_hz}
         settings = GraphSettings(max_segments=args.max_segments, min_confidence=min_confidence,
-                                 reach_tolerance=reach_tolerance, plan_attempts=plan_attempts, think_s=args.think_s)
+                                 reach_tolerance=reach_tolerance, plan_attempts=plan_attempts, think_s=args.think_s,
+                                 sensor=sensor, **cameras)
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, settings, flat=flat,
                            flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras)
     except ValueError as err:
@@ -240,7 +278,8 @@ def run_hierarchy(args) -> int:
     print(markdown_table(results))
     first, last = results['seeds']
     print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}; "
-          f"{results['wall_s'] / 60:.1f} min, {results['processes']} process(es)")
+          f"{results['wall_s'] / 60:.1f} min, {results['processes']} process(es); cameras at "
+          f"{settings.camera_hz:g} Hz, {sensor.summary()}")
     if 'flat' in results:
         cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
         print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "

@@ -23,6 +23,7 @@ from hdp_controller.trajectory import VELOCITY_SCALE
 from hdp_msgs_py.outcome import Outcome, StatusLine
 from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, PlannerLoop, Prediction, SegmentGoal
 from hdp_sim_bridge.bridge import SimBridge
+from hdp_sim_bridge.sensor_model import SensorSettings
 from hdp_sim_bridge.world import TIME_STEP
 
 # The graph's rates (hdp_bringup/config/hdp_graph.yaml and the nodes' timers), in Hz of sim time.
@@ -48,6 +49,8 @@ class GraphSettings:
     carry_on_unsettled: bool = True         # the graph's `unsettled: carry_on`
     camera_hz: float = CAMERA_HZ
     think_s: float = 0.0
+    # sim_bridge_node's sensor_profile, extrinsic_error_mm/_deg and latency_ms; the bridge is built with it
+    sensor: SensorSettings = dataclasses.field(default_factory=SensorSettings)
 
 
 @dataclasses.dataclass
@@ -113,7 +116,8 @@ class InProcessGraph:
             if self._steps % every['joints'] == 0:
                 self._publish_joint_state()
             if self._steps % every['cameras'] == 0:
-                self._publish_cameras()
+                self.bridge.expose()
+            self._deliver_frames()
             if self._steps % every['success'] == 0:
                 self.planner.on_success(self.bridge.success())
             if self._steps % every['controller'] == 0:
@@ -130,9 +134,9 @@ class InProcessGraph:
         self.planner.observations.on_joint_state(msg)
         self.controller.on_joint_state(msg)
 
-    def _publish_cameras(self) -> None:
-        for name in self.bridge.publishing:
-            color, depth, info = self.bridge.camera_messages(name)
+    def _deliver_frames(self) -> None:
+        """The frames the bridge exposed that are due now (at once, or the sensor's latency later)."""
+        for name, (color, depth, info) in self.bridge.delivered():
             self.planner.observations.on_color(name, color)
             self.planner.observations.on_depth(name, depth)
             self.planner.observations.on_info(name, info)

@@ -39,7 +39,8 @@ from hdp_learning import distributed
 from hdp_planner import language
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.bridge import SimBridge
-from hdp_sim_bridge.cameras import default_cameras
+from hdp_sim_bridge.cameras import CameraRig, default_cameras
+from hdp_sim_bridge.sensor_model import SensorSettings
 from hdp_sim_bridge.tasks import TASKS
 from hdp_sim_bridge.world import TIME_STEP, PandaWorld
 
@@ -124,7 +125,7 @@ def run_episode(name: str, agent, low_level, task_name: str, seed: int, phrasing
     if world is None:
         with PandaWorld() as own:
             return run_episode(name, agent, low_level, task_name, seed, phrasing, settings, camera_size, own)
-    bridge = SimBridge(*camera_size, world=world)
+    bridge = SimBridge(*camera_size, world=world, sensor=settings.sensor)
     episode = bridge.reset(task_name, seed)
     start_episode(low_level, seed)
     record = HierarchyRecord(name, task_name, seed, phrasing,
@@ -165,19 +166,21 @@ def execute_flat_step(world: PandaWorld, task, command: np.ndarray, target: np.n
 
 def run_flat_episode(name: str, policy, task_name: str, seed: int, phrasing: str = 'seen',
                      max_seconds: float = FLAT_MAX_SECONDS, camera_size=CAMERA_SIZE, world: PandaWorld | None = None,
-                     cameras_when: str = 'rest') -> FlatRecord:
+                     cameras_when: str = 'rest', sensor: SensorSettings = SensorSettings()) -> FlatRecord:
     """One closed-loop episode of a flat policy (hdp_planner.flat.FlatPolicy): the same scene and
-    instruction as run_episode's; see the module docstring."""
+    instruction as run_episode's; see the module docstring. sensor: the cameras' sensor model and
+    calibration error (colour is all a flat policy sees; frames are shown as they are taken)."""
     from hdp_planner.flat.policy import FlatObservation
     if cameras_when not in FLAT_CAMERAS:
         raise ValueError(f'cameras_when must be one of {FLAT_CAMERAS}, got {cameras_when!r}')
     if world is None:
         with PandaWorld() as own:
             return run_flat_episode(name, policy, task_name, seed, phrasing, max_seconds, camera_size, own,
-                                    cameras_when)
+                                    cameras_when, sensor)
     task, _, variation = experts.reachable_scene(world, task_name, seed)
     record = FlatRecord(name, task_name, seed, phrasing, episode_instruction(task_name, seed, variation, phrasing))
-    cameras = default_cameras(*camera_size)
+    rig = CameraRig(default_cameras(*camera_size), sensor)
+    rig.start_episode(seed)
     policy.reset(record.instruction, seed)
     period_steps = max(1, round(policy.control_period_s / TIME_STEP))
     start, command = world.sim_time, world.joint_positions()
@@ -187,7 +190,7 @@ def run_flat_episode(name: str, policy, task_name: str, seed: int, phrasing: str
         still = world.arm_reference_settled and np.max(np.abs(world.joint_velocities())) < experts.SETTLE_VELOCITY
         moved = moved or not still
         if images is None or cameras_when == 'every' or (still and moved):
-            images = {c: camera.render(world.client)[0] for c, camera in cameras.items()}
+            images = {c: rig.render(world.client, c, round(world.sim_time / TIME_STEP))[0] for c in rig.cameras}
             record.camera_frames += 1
             moved = False
         observation = FlatObservation(images, q, world.gripper_commanded_open, world.gripper_width())
@@ -246,7 +249,7 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
                                                disable=not progress or rank > 0):
             if name in flat:
                 records.append(run_flat_episode(name, flat[name], task, seed, phrasing, flat_max_seconds,
-                                                world=world, cameras_when=cameras_when[name]))
+                                                world=world, cameras_when=cameras_when[name], sensor=settings.sensor))
                 continue
             records.append(run_episode(name, agent, low_levels[name], task, seed, phrasing, settings, world=world))
     if world_size > 1:

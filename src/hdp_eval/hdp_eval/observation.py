@@ -11,7 +11,7 @@ from hdp_controller.observation import CAMERA_SIZE, N_POINTS, workspace_points
 from hdp_controller.segment_planning import segment_request as planning_request
 from hdp_motion import panda
 from hdp_msgs_py import conversions
-from hdp_sim_bridge.cameras import default_cameras
+from hdp_sim_bridge.cameras import CameraRig, default_cameras
 
 
 def front_camera(width: int = CAMERA_SIZE[0], height: int = CAMERA_SIZE[1]):
@@ -20,10 +20,15 @@ def front_camera(width: int = CAMERA_SIZE[0], height: int = CAMERA_SIZE[1]):
 
 
 def front_points(world_or_client, camera, n_points: int = N_POINTS,
-                 rng: np.random.Generator | None = None) -> np.ndarray:
-    """Render ``camera`` in a PandaWorld (or its BulletClient) -> (n_points, 3) float32 world points."""
+                 rng: np.random.Generator | None = None, rig: CameraRig | None = None,
+                 frame: int = 0) -> np.ndarray:
+    """Render ``camera`` in a PandaWorld (or its BulletClient) -> (n_points, 3) float32 world points.
+
+    rig: a CameraRig holding ``camera``: the render is its frame number ``frame`` (sensor model,
+    calibration error), unprojected through the camera's nominal intrinsics and pose as a
+    subscriber does. None: the ideal render."""
     client = getattr(world_or_client, 'client', world_or_client)
-    _, depth_mm = camera.render(client)
+    _, depth_mm = rig.render(client, camera.name, frame) if rig is not None else camera.render(client)
     points = conversions.depth_to_points(depth_mm * 0.001, camera.intrinsics, camera.camera_to_world)
     return workspace_points(points, n_points, rng)
 

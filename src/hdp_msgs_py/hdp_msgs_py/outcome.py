@@ -18,8 +18,10 @@ RESULTS = (
     'succeeded',    # the task's success condition held
     'failed',       # a segment failed, a camera or the controller timed out, or the budget ran out
     'refused',      # never started: empty, too long, or nothing in it the agent was trained on
-    'replaced',     # a newer instruction took over
+    'replaced',     # a newer instruction took over (queue_policy replace), running or waiting
     'ended',        # the segment budget ran out on a robot that reports no success
+    'stopped',      # an operator stopped it (/hdp/stop), running or waiting
+    'shutdown',     # the planner shut down while it ran or waited
 )
 MAX_INSTRUCTION_ECHO = 1024     # characters of a (refused) instruction repeated in its outcome
 

@@ -14,6 +14,7 @@ Times are seconds on the node's clock.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
 from pathlib import Path
@@ -41,6 +42,13 @@ FRAME_LEAD_S = 1.0       # how far a frame's stamp may run ahead of the latest j
 # confidence was 0.056; 0.08, chosen for the six-task agent, would have refused 3 successes and
 # nothing else). The six-task hdp_nbp_agent.pt was calibrated at 0.08: pass it with the file.
 DEFAULT_MIN_CONFIDENCE = 0.05
+# What an instruction that comes while another runs does (planner_node's `queue_policy`):
+# replace: the newest instruction wins; the running one ends 'replaced' at the next segment
+#   boundary, and one still waiting to start is 'replaced' at once.
+# queue: it waits its turn, first in first out, up to `max_queued`; beyond that it is refused.
+# refuse: it is refused ('busy'); the running one goes on.
+QUEUE_POLICIES = ('replace', 'queue', 'refuse')
+DEFAULT_MAX_QUEUED = 10
 
 
 def default_checkpoint() -> Path:
@@ -178,21 +186,29 @@ class PlannerLoop:
     idle (no instruction) -> observing (waiting for fresh frames, then predicting) ->
     waiting (a segment sent, its result due) -> observing ... -> idle. A result that does not
     come within result_timeout_s is reported and the loop observes again: the segment counts
-    against the budget, and a restarted controller takes the next one. A new instruction
-    while observing replaces the running one; while waiting, it starts when the result
-    (or its timeout) comes. Every stop says why on /hdp/status.
+    against the budget, and a restarted controller takes the next one.
+
+    Every instruction gets exactly one Outcome: when it ends, or at once when it is refused,
+    replaced before it started, stopped (stop()) or cut short by shutdown(). What an
+    instruction arriving while another runs does is ``queue_policy`` (QUEUE_POLICIES); one
+    waiting to start starts at the next step(), so a burst of instructions costs a message
+    callback almost nothing. Every stop says why on /hdp/status.
     """
 
     def __init__(self, agent, vocabulary, max_segments: int = 8, camera_timeout_s: float = 5.0,
                  result_timeout_s: float = 60.0, observations: Observations | None = None,
-                 min_confidence: float = DEFAULT_MIN_CONFIDENCE):
+                 min_confidence: float = DEFAULT_MIN_CONFIDENCE, queue_policy: str = 'replace',
+                 max_queued: int = DEFAULT_MAX_QUEUED):
+        if queue_policy not in QUEUE_POLICIES:
+            raise ValueError(f'queue_policy must be one of {", ".join(QUEUE_POLICIES)}, got {queue_policy!r}')
+        self.queue_policy, self.max_queued = queue_policy, max_queued
         self.agent, self.vocabulary = agent, None if vocabulary is None else tuple(vocabulary)
         self.min_confidence = min_confidence
         self.max_segments = max_segments
         self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s
         self.observations = observations or Observations()
         self.instruction: str | None = None
-        self.queued: str | None = None
+        self.waiting: collections.deque[str] = collections.deque()    # to start, oldest first
         self.segment: Segment | None = None       # sent, result not yet back
         self.count = 0                            # segments sent for this instruction
         self.deadline_s = 0.0
@@ -212,11 +228,34 @@ class PlannerLoop:
         except InstructionRefused as err:
             return [StatusLine(f'refused instruction: {err}', error=True),
                     Outcome(text.strip(), 'refused', str(err), 0)]
+        if self.instruction is None and not self.waiting:
+            return self._begin(instruction, now_s)
+        if self.queue_policy == 'refuse':
+            return self._refuse(instruction, f'busy: {self._busy_with()!r} is running (queue_policy refuse)')
+        if self.queue_policy == 'queue':
+            if len(self.waiting) >= self.max_queued:
+                return self._refuse(instruction, f'queue full: {len(self.waiting)} instructions wait '
+                                                 f'(max_queued {self.max_queued})')
+            self.waiting.append(instruction)
+            return [StatusLine(f'instruction {instruction!r} queued: {len(self.waiting)} waiting')]
+        out = self._end_waiting('replaced', f'replaced by {instruction!r} before it started')
+        self.waiting.append(instruction)
+        if self.instruction is not None and self.segment is None:
+            return out + self._stop(f'replaced by {instruction!r}', now_s, 'replaced')
         if self.segment is not None:
-            self.queued = instruction
-            return [StatusLine(f'instruction {instruction!r} queued: it starts when segment '
-                               f'{self.segment.index} ends')]
-        return self._begin(instruction, now_s)
+            out.append(StatusLine(f'instruction {instruction!r} waits: it replaces {self.instruction!r} when '
+                                  f'segment {self.segment.index} ends'))
+        return out
+
+    def stop(self, why: str, now_s: float) -> list:
+        """End the running instruction and every waiting one as 'stopped' (an operator's stop)."""
+        out = self._end_waiting('stopped', f'not started: {why}')
+        return out + (self._stop(why, now_s, 'stopped') if self.instruction is not None else [])
+
+    def shutdown(self, now_s: float) -> list:
+        """The node is going down: the running and every waiting instruction end 'shutdown'."""
+        out = self._end_waiting('shutdown', 'the planner shut down before it started')
+        return out + (self._stop('the planner shut down', now_s, 'shutdown') if self.instruction is not None else [])
 
     def on_result(self, msg, now_s: float) -> list:
         """A /hdp/segment_result (std_msgs/Header); results of other segments are ignored."""
@@ -231,8 +270,8 @@ class PlannerLoop:
             return [StatusLine(line, error=True)] + self._stop(f'segment {segment.index} {msg.frame_id}', now_s,
                                                                'failed')
         self.gripper_open = segment.gripper_open
-        if self.queued is not None:
-            return [StatusLine(line)] + self._stop('replaced by a new instruction', now_s, 'replaced')
+        if self._replaced_by() is not None:
+            return [StatusLine(line)] + self._stop(f'replaced by {self._replaced_by()!r}', now_s, 'replaced')
         self._observe(now_s)
         return [StatusLine(line)]
 
@@ -240,7 +279,9 @@ class PlannerLoop:
     def step(self, now_s: float, now_ns: int) -> list:
         """Advance the loop; call it often (the node's timer). ``now_ns`` stamps a new NBP."""
         if self.instruction is None:
-            return []
+            if not self.waiting:
+                return []
+            return self._begin(self.waiting.popleft(), now_s) + self.step(now_s, now_ns)
         if self.segment is not None:
             return [] if now_s <= self.deadline_s else self._result_timed_out(now_s)
         if self.success_heard and self.success:
@@ -263,11 +304,13 @@ class PlannerLoop:
         return self._predict_and_send(now_s, now_ns)
 
     def robot_gone(self, why: str, now_s: float) -> list:
-        """The robot stopped answering (Liveness.problem): the running instruction fails, naming why."""
+        """The robot stopped answering (Liveness.problem): the running instruction and every waiting
+        one fail, naming why."""
+        out = self._end_waiting('failed', f'not started: {why}')
         if self.instruction is None:
-            return []
-        self.segment, self.queued = None, None
-        return self._stop(why, now_s, 'failed')
+            return out
+        self.segment = None
+        return out + self._stop(why, now_s, 'failed')
 
     def _result_timed_out(self, now_s: float) -> list:
         """Report the missing result and go on: re-observe and send a fresh NBP while the budget lasts.
@@ -278,8 +321,9 @@ class PlannerLoop:
         segment, self.segment, self.gripper_open = self.segment, None, None
         line = (f'segment {segment.index}: no result from the controller within {self.result_timeout_s:.1f} s '
                 f'(is controller_node running?)')
-        if self.queued is not None:
-            return [StatusLine(line, error=True)] + self._stop('replaced by a new instruction', now_s, 'replaced')
+        if self._replaced_by() is not None:
+            return [StatusLine(line, error=True)] + self._stop(f'replaced by {self._replaced_by()!r}', now_s,
+                                                               'replaced')
         self._observe(now_s)
         return [StatusLine(line + ('; re-observing' if self.count < self.max_segments else ''), error=True)]
 
@@ -311,12 +355,11 @@ class PlannerLoop:
                            f'{"open" if nbp.gripper_open else "close"} (confidence {nbp.confidence:.2f})')]
 
     def _begin(self, instruction: str, now_s: float) -> list:
-        replaced = self.instruction
         # Between instructions the world may have been reset or the hand moved by someone
         # else: the gripper's state is read from the fingers again, not carried over.
         self.instruction, self.count, self.gripper_open = instruction, 0, None
         self._observe(now_s)
-        note = f' (replaces {replaced!r})' if replaced is not None else ''
+        note = ''
         reading = self.agent.read(instruction)
         if reading.grounded and reading.text != instruction:
             note += f', read as {reading.text!r} (similarity {reading.similarity:.2f})'
@@ -333,7 +376,24 @@ class PlannerLoop:
         out = [StatusLine(f'instruction {self.instruction!r}: {why}', error=result in ('failed', 'refused')),
                Outcome(self.instruction, result, why, self.count)]
         self.instruction, self.segment = None, None
-        if self.queued is not None:
-            queued, self.queued = self.queued, None
-            out += self._begin(queued, now_s)
         return out
+
+    def _refuse(self, instruction: str, why: str) -> list:
+        return [StatusLine(f'refused instruction {instruction!r}: {why}', error=True),
+                Outcome(instruction, 'refused', why, 0)]
+
+    def _end_waiting(self, result: str, why: str) -> list:
+        """Every instruction waiting to start ends with ``result`` (each its own Outcome)."""
+        out = []
+        while self.waiting:
+            instruction = self.waiting.popleft()
+            out += [StatusLine(f'instruction {instruction!r}: {why}', error=result == 'failed'),
+                    Outcome(instruction, result, why, 0)]
+        return out
+
+    def _replaced_by(self) -> str | None:
+        """The instruction that replaces the running one at this segment boundary, if any."""
+        return self.waiting[-1] if self.queue_policy == 'replace' and self.waiting else None
+
+    def _busy_with(self) -> str:
+        return self.instruction if self.instruction is not None else self.waiting[0]

@@ -23,8 +23,8 @@ from hdp_msgs_py.outcome import Outcome, StatusLine
 
 from . import visualisation
 from .agent import NextBestPoseAgent
-from .planner_logic import (DEFAULT_MIN_CONFIDENCE, Observations, PlannerLoop, Prediction, SegmentGoal,
-                            default_checkpoint)
+from .planner_logic import (DEFAULT_MAX_QUEUED, DEFAULT_MIN_CONFIDENCE, QUEUE_POLICIES, Observations, PlannerLoop,
+                            Prediction, SegmentGoal, default_checkpoint)
 
 _STEP_S = 0.1
 _WATCH_S = 0.5
@@ -37,6 +37,9 @@ class PlannerNode(ros.Node):
         'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
         'result_timeout_s': (60.0, 's to wait for a segment result before the next segment'),
         'min_confidence': (DEFAULT_MIN_CONFIDENCE, "an instruction whose first NBP is less confident is refused"),
+        'queue_policy': ('replace', 'an instruction that comes while another runs: replace (the newest wins), '
+                                    'queue (waits its turn, up to max_queued) or refuse (busy)'),
+        'max_queued': (DEFAULT_MAX_QUEUED, 'instructions that may wait under queue_policy queue; more are refused'),
         'ground_instructions': (True, 'read each instruction as the nearest training one first (grounding.py; '
                                       'agents with the sentence encoder)'),
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before an instruction fails'),
@@ -54,6 +57,11 @@ class PlannerNode(ros.Node):
         for name in ('camera_timeout_s', 'result_timeout_s', 'state_timeout_s'):
             if not p[name] > 0:
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
+        if p['queue_policy'] not in QUEUE_POLICIES:
+            raise ros.StartupError(f"parameter 'queue_policy' must be one of {', '.join(QUEUE_POLICIES)}, "
+                                   f"got {p['queue_policy']!r}")
+        if p['max_queued'] < 1:
+            raise ros.StartupError(f"parameter 'max_queued' must be >= 1, got {p['max_queued']}")
         if not 0.0 <= p['min_confidence'] < 1.0:
             raise ros.StartupError(f"parameter 'min_confidence' must be in [0, 1), got {p['min_confidence']}")
         camera_size = None if tuple(p['camera_size']) == (0, 0) else tuple(p['camera_size'])
@@ -71,19 +79,21 @@ class PlannerNode(ros.Node):
                                     panda.finger_joint_names(prefix))
         self.observations = observations           # the loop reads them; the subscriptions fill them
         self.loop = PlannerLoop(agent, agent.vocabulary, p['max_segments'], p['camera_timeout_s'],
-                                p['result_timeout_s'], observations, p['min_confidence'])
+                                p['result_timeout_s'], observations, p['min_confidence'], p['queue_policy'],
+                                p['max_queued'])
 
         self.status = ros.Status(self)
         self._nbp = self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
         self._gripper_goal = self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS)
-        self._outcome = self.create_publisher(String, topics.OUTCOME, topics.COMMAND_QOS)
+        self._outcome = self.create_publisher(String, topics.OUTCOME, topics.INSTRUCTION_QOS)
         # For RViz and Foxglove: the NBP as a TF frame and an arrow.
         self._tf = self.create_publisher(TFMessage, topics.TF, topics.TF_QOS)
         self._marker = self.create_publisher(Marker, topics.NEXT_BEST_POSE_MARKER, topics.COMMAND_QOS)
         self._cloud = (self.create_publisher(PointCloud2, topics.PLANNER_CLOUD, topics.SENSOR_QOS)
                        if p['publish_cloud'] else None)
         self.create_subscription(String, topics.INSTRUCTION,
-                                 lambda m: self._send(self.loop.on_instruction(m.data, self._now())), 10)
+                                 lambda m: self._send(self.loop.on_instruction(m.data, self._now())),
+                                 topics.INSTRUCTION_QOS)
         for camera in topics.CAMERAS:
             for msg_type, topic, callback in (
                     (Image, topics.color_image(camera), observations.on_color),

@@ -1,1 +1,2 @@
-"""What every HDP node adds to rclpy: ros (init with the Fast DDS profile, Node, Status, run) and liveness."""
+"""What every HDP node adds to rclpy: ros (init with the Fast DDS profile, Node, Status, run), liveness
+and shm (the shared memory of dead Fast DDS processes, removed)."""

@@ -36,6 +36,8 @@ from rclpy.utilities import remove_ros_args
 from hdp_msgs_py import topics
 from hdp_msgs_py.msg import String
 
+from . import shm
+
 
 FASTDDS_LOCALHOST_PROFILE = Path(__file__).with_name('config') / 'fastdds_localhost.xml'
 
@@ -66,7 +68,9 @@ def _interrupt(signum, frame):
 
 
 def init(args=None, **kwargs) -> None:
-    """rclpy.init() with the middleware set up for the graph (use_localhost_profile)."""
+    """rclpy.init() with the middleware set up for the graph (use_localhost_profile), once the
+    shared memory of Fast DDS processes that died without cleaning up is gone (shm)."""
+    shm.remove_dead_segments()
     use_localhost_profile()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _interrupt)        # rclpy's handler chains to this one

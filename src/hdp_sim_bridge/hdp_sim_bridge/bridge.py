@@ -16,10 +16,11 @@ from hdp_data import instructions
 from hdp_msgs_py import conversions
 from hdp_msgs_py.msg import Clock, Header, TFMessage, Time
 
-from .cameras import default_cameras
+from .cameras import CameraRig, default_cameras
 from .collect import joint_state
 from .experts import reachable_scene
 from .robot_state import LinkTransforms
+from .sensor_model import SensorSettings
 from .tasks import TASKS
 from .trajectory_follower import accept
 from .world import TIME_STEP, PandaWorld
@@ -74,12 +75,17 @@ def gripper_target(msg) -> bool:
 
 class SimBridge:
     """world: a PandaWorld to use (and leave open on close()), as an evaluation keeps one
-    between episodes; None makes one of its own."""
+    between episodes; None makes one of its own. sensor: how the cameras differ from ideal ones
+    (sensor model, calibration error, latency); ideal by default."""
 
-    def __init__(self, width: int = 640, height: int = 480, world: PandaWorld | None = None):
+    def __init__(self, width: int = 640, height: int = 480, world: PandaWorld | None = None,
+                 sensor: SensorSettings = SensorSettings()):
         self._owns_world = world is None
         self.world = world if world is not None else PandaWorld()
-        self.cameras = default_cameras(width, height)
+        self.cameras = default_cameras(width, height)      # as calibrated: CameraInfo and /tf_static
+        self.sensor = sensor
+        self.rig = CameraRig(self.cameras, sensor)
+        self._in_flight: list[tuple[float, str, tuple]] = []    # (due s, camera, its messages), exposed
         self.publishing = tuple(self.cameras)     # cameras whose frames go out; /hdp/sim/cameras stops some
         self.task = None
         self.episode: dict = {}
@@ -95,6 +101,8 @@ class SimBridge:
             check_variation(task_name, variation)
         task, rng, variation = reachable_scene(self.world, task_name, seed, variation)
         self.task, self.trajectory = task, None
+        self.rig.start_episode(seed)
+        self._in_flight.clear()          # the last episode's frames never arrive in this one
         self.episode = {'task': task_name, 'seed': seed, 'variation': variation,
                         'instruction': task.instruction(rng)}
         return self.episode
@@ -177,13 +185,27 @@ class SimBridge:
         return self._link_transforms
 
     def camera_messages(self, name: str):
-        """(colour rgb8 Image, depth 16UC1 Image, CameraInfo) of one camera, now."""
+        """(colour rgb8 Image, depth 16UC1 Image, CameraInfo) of one camera exposed now, stamped now."""
         camera = self.cameras[name]
-        rgb, depth = camera.render(self.world.client)
+        rgb, depth = self.rig.render(self.world.client, name, round(self.sim_time / TIME_STEP))
         stamp = conversions.seconds_to_time(self.sim_time)
         header = Header(stamp=stamp, frame_id=camera.frame_id)
         return (conversions.numpy_to_image(rgb, 'rgb8', header),
                 conversions.numpy_to_image(depth, '16UC1', header), camera.camera_info(stamp))
+
+    def expose(self) -> None:
+        """Every publishing camera takes a frame now, stamped now; it is delivered (``delivered``)
+        the sensor's latency later, at the first physics step at or after that."""
+        due = self.sim_time + self.sensor.latency_ms * 1e-3
+        self._in_flight += [(due, name, self.camera_messages(name)) for name in self.publishing]
+
+    def delivered(self) -> list[tuple[str, tuple]]:
+        """The exposed frames due by now, oldest first, each once: [(camera, (colour, depth, CameraInfo))]."""
+        now = self.sim_time + 1e-9
+        due = [(name, messages) for at, name, messages in self._in_flight if at <= now]
+        if due:
+            self._in_flight = [frame for frame in self._in_flight if frame[0] > now]
+        return due
 
     def close(self) -> None:
         if self._owns_world:

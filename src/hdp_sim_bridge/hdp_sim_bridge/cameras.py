@@ -17,6 +17,7 @@ z forward), as aligned_depth_to_color does.
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 import pybullet
@@ -24,6 +25,7 @@ import pybullet
 from hdp_msgs_py.conversions import Intrinsics, intrinsics_to_camera_info, matrix_to_transform
 from hdp_msgs_py.msg import CameraInfo, Header, Time, TransformStamped
 
+from .sensor_model import SensorSettings, degrade, perturbed_pose
 from .world import WORKSPACE
 
 HORIZONTAL_FOV_16_9 = 69.0    # deg, D415 colour
@@ -146,3 +148,40 @@ def default_cameras(width: int = 640, height: int = 480, **kwargs) -> dict[str, 
     return {name: D415Camera.looking_at(name, center + offset, center, width=width, height=height,
                                         **kwargs)
             for name, offset in _EYE_OFFSETS.items()}
+
+
+class CameraRig:
+    """Cameras as a real rig delivers their frames: each renders from where it really is (its
+    nominal pose, which CameraInfo and /tf_static keep, off by a calibration error drawn per
+    episode) and each frame passes through the sensor model. Random draws are seeded per (episode
+    seed, camera, frame), so a re-run gives the same frames whatever ran before it; with ideal
+    settings a frame is the camera's own render, bit for bit.
+
+    cameras: name -> D415Camera, nominal. settings: a SensorSettings.
+    """
+
+    def __init__(self, cameras: dict[str, D415Camera], settings: SensorSettings = SensorSettings()):
+        self.cameras, self.settings = cameras, settings
+        self.start_episode(0)
+
+    def start_episode(self, seed: int) -> None:
+        """Draw this episode's calibration errors from ``seed``; later frames are seeded with it."""
+        self.seed = seed
+        self.rendering = {name: self._as_mounted(camera) for name, camera in self.cameras.items()}
+
+    def _as_mounted(self, camera: D415Camera) -> D415Camera:
+        error_mm, error_deg = self.settings.extrinsic_error_mm, self.settings.extrinsic_error_deg
+        if not (error_mm or error_deg):
+            return camera
+        pose = perturbed_pose(camera.camera_to_world, error_mm, error_deg, self._rng(camera.name, 0))
+        return D415Camera(camera.name, pose, camera.intrinsics.width, camera.intrinsics.height, camera.max_depth_m)
+
+    def _rng(self, name: str, *stream: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, zlib.crc32(name.encode()), *stream])
+
+    def render(self, client, name: str, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """rgb (H, W, 3) uint8 and depth (H, W) uint16 mm of camera ``name`` as delivered; ``frame``: a
+        non-negative integer naming the frame within the episode (physics steps since its start)."""
+        camera = self.cameras[name]
+        rgb, depth = self.rendering[name].render(client)
+        return degrade(rgb, depth, camera.intrinsics.fx, self.settings.profile, self._rng(name, 1, frame))

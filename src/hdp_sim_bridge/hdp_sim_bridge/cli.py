@@ -28,6 +28,9 @@ def configure_collect(parser) -> None:
     parser.add_argument('--camera-rate', type=float, default=0.0, metavar='HZ',
                         help='also record both cameras at this rate of sim time between rests, as the flat '
                              'baselines need (default 0: at the start and at rests only, where keyframes are)')
+    parser.add_argument('--sensor-profile', choices=('ideal', 'd415'), default='ideal',
+                        help="the cameras' sensor model: ideal renders (default) or a D415's depth noise, holes "
+                             'and colour jitter, drawn per episode seed (README: Sensor model)')
     parser.add_argument('--json', type=Path, help='also write the summaries here')
     parser.set_defaults(func=run_collect)
 
@@ -44,7 +47,7 @@ def run_collect(args) -> int:
     try:
         with tqdm(total=len(tasks) * args.episodes, unit='episode') as bar:
             for summary in collect(tasks, args.episodes, args.seed_start, args.out, args.workers,
-                                   args.width, args.height, args.camera_rate):
+                                   args.width, args.height, args.camera_rate, args.sensor_profile):
                 summaries.append(summary)
                 bar.set_postfix_str(f'{summary.task} seed {summary.seed}: '
                                     f'{"ok" if summary.success else "FAILED"}')
@@ -106,17 +109,20 @@ def configure_bench_sim(parser) -> None:
     parser.add_argument('--height', type=int, default=480)
     parser.add_argument('--camera-rate', type=float, default=5.0, help='frames per sim second (default 5)')
     parser.add_argument('--task', default='open_drawer')
+    parser.add_argument('--sensor-profile', choices=('ideal', 'd415'), default='ideal',
+                        help="the cameras' sensor model (default ideal)")
     parser.add_argument('--json', action='store_true')
     parser.set_defaults(func=run_bench_sim)
 
 
 def run_bench_sim(args) -> int:
     from .bridge import SimBridge
+    from .sensor_model import SensorSettings, profile_named
     from .world import TIME_STEP
-    bridge = SimBridge(args.width, args.height)
+    bridge = SimBridge(args.width, args.height, sensor=SensorSettings(profile_named(args.sensor_profile)))
     results = {}
-    for label, rate in (('cameras off', 0.0), (f'2 cameras {args.width}x{args.height} @ {args.camera_rate:g} Hz',
-                                                args.camera_rate)):
+    for label, rate in (('cameras off', 0.0), (f'2 cameras {args.width}x{args.height} @ {args.camera_rate:g} Hz, '
+                                                f'{args.sensor_profile}', args.camera_rate)):
         bridge.reset(args.task, 0)
         every = round(1.0 / (rate * TIME_STEP)) if rate > 0 else 0
         steps = int(args.seconds / TIME_STEP)

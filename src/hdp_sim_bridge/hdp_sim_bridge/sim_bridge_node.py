@@ -4,7 +4,9 @@ It is the graph's clock: it publishes /clock from simulation time and keeps
 its own timers on the wall clock, stepping physics at ``real_time_factor``.
 """
 
+import dataclasses
 import json
+import math
 import time
 
 import numpy as np
@@ -21,6 +23,7 @@ from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTra
 
 from .bridge import SimBridge, parse_reset
 from .robot_state import robot_description
+from .sensor_model import D415, PROFILES, SensorSettings, profile_named
 from .world import TIME_STEP
 
 _MAX_STEPS_PER_TICK = 48              # catch up at most 0.2 s of sim time per tick
@@ -33,6 +36,21 @@ GRIPPER_STILL_S = 0.2                  # fingers unmoved this long have stopped 
 GRIPPER_REACHED = 0.005                # m of width: franka_gripper's grasp epsilon
 
 
+def gripper_goal_width(command) -> float:
+    """The width (m) a control_msgs/GripperCommand asks for, or ValueError.
+
+    As franka_gripper's gripper_action: ``position`` is half the width (one finger's
+    joint), ``max_effort`` the grasp force in N. The simulated fingers close with their
+    own force (world.FINGER_FORCE), so max_effort is checked but not applied.
+    """
+    half = panda.GRIPPER_OPEN_WIDTH / 2
+    if not math.isfinite(command.position) or not -1e-6 <= command.position <= half + 1e-6:
+        raise ValueError(f'position (half the width) must be within [0, {half}] m, got {command.position}')
+    if not math.isfinite(command.max_effort) or command.max_effort < 0:
+        raise ValueError(f'max_effort must be a finite force >= 0 N, got {command.max_effort}')
+    return 2 * command.position
+
+
 class SimBridgeNode(ros.Node):
     PARAMETERS = {
         'task': ('reach_target', 'the task of the first episode (later ones: /hdp/sim/reset)'),
@@ -40,7 +58,16 @@ class SimBridgeNode(ros.Node):
         'variation': (-1, 'its variation; -1 draws it from the seed'),
         'camera_width': (640, 'px, both cameras'),
         'camera_height': (480, 'px, both cameras'),
-        'camera_rate_hz': (2.0, 'frames per second of sim time; 0 turns the cameras off'),
+        'camera_rate_hz': (2.0, 'frames per second of sim time (a D415 streams 6, 15 or 30); 0 turns the '
+                                'cameras off'),
+        'sensor_profile': ('ideal', f'camera sensor model: {" | ".join(PROFILES)} (sensor_model.py)'),
+        'extrinsic_error_mm': (0.0, 'calibration error: each camera renders from a pose this far (random '
+                                    'direction, per episode) from the one /tf_static gives'),
+        'extrinsic_error_deg': (0.0, 'calibration error: and turned this much (random axis, per episode)'),
+        'latency_ms': (0.0, 'frames are stamped at exposure and published this much later (sim time)'),
+        **{f'd415.{field.name}': (getattr(D415, field.name), f'the d415 profile\'s {field.name}, used when '
+                                  'sensor_profile is d415 (hdp_sim_bridge README: Sensor model)')
+           for field in dataclasses.fields(D415) if field.name != 'name'},
         'joint_state_rate_hz': (120.0, '/joint_states per second of sim time'),
         'real_time_factor': (1.0, 'sim time per wall time; 0 runs as fast as possible'),
     }
@@ -57,8 +84,16 @@ class SimBridgeNode(ros.Node):
         self._joint_every = max(1, round(1.0 / (p['joint_state_rate_hz'] * TIME_STEP)))
         self._camera_every = round(1.0 / (p['camera_rate_hz'] * TIME_STEP)) if p['camera_rate_hz'] > 0 else 0
 
-        self.bridge = SimBridge(p['camera_width'], p['camera_height'])
+        try:
+            d415 = {name[len('d415.'):]: value for name, value in p.items() if name.startswith('d415.')}
+            profile = profile_named(p['sensor_profile'], **(d415 if p['sensor_profile'] == 'd415' else {}))
+            sensor = SensorSettings(profile, p['extrinsic_error_mm'], p['extrinsic_error_deg'], p['latency_ms'])
+        except ValueError as err:
+            raise ros.StartupError(f'bad sensor parameters: {err}') from None
+        self.bridge = SimBridge(p['camera_width'], p['camera_height'], sensor=sensor)
         self.status = ros.Status(self)
+        if not sensor.is_ideal:
+            self.status.info(f'cameras: {sensor.summary()}')
         self._clock_pub = self.create_publisher(Clock, topics.CLOCK, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self._joints = self.create_publisher(JointState, topics.JOINT_STATES, topics.COMMAND_QOS)
@@ -80,7 +115,7 @@ class SimBridgeNode(ros.Node):
         ActionServer(self, FollowJointTrajectory, topics.ARM_ACTION, self._execute_arm,
                      goal_callback=self._arm_goal, cancel_callback=lambda _: CancelResponse.ACCEPT)
         ActionServer(self, GripperCommand, topics.GRIPPER_ACTION, self._execute_gripper,
-                     cancel_callback=lambda _: CancelResponse.ACCEPT)
+                     goal_callback=self._gripper_goal, cancel_callback=lambda _: CancelResponse.ACCEPT)
 
         self._reset(p['task'], p['seed'], None if p['variation'] < 0 else p['variation'])
         # Two latched messages, as a robot's calibration and robot_state_publisher each send
@@ -172,15 +207,21 @@ class SimBridgeNode(ros.Node):
                 goal_handle.abort()
                 return result
 
+    def _gripper_goal(self, goal):
+        try:
+            gripper_goal_width(goal.command)
+        except ValueError as err:
+            self.status.error(f'rejected gripper goal: {err}')
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
     async def _execute_gripper(self, goal_handle):
-        """Open or close as franka_gripper's gripper_action does: position is half the target width;
-        reached_goal when the fingers end within its grasp epsilon of it (closing on an object does
-        not, and aborts, though the object is held)."""
-        target = 2 * goal_handle.request.command.position
+        """Open or close as franka_gripper's gripper_action does (gripper_goal_width); the result's
+        position is half the width reached, as its command's; reached_goal when the fingers end
+        within its grasp epsilon of the width asked for (closing on an object does not, and
+        aborts, though the object is held)."""
+        target = gripper_goal_width(goal_handle.request.command)
         result = GripperCommand.Result()
-        if not 0.0 <= target <= panda.GRIPPER_OPEN_WIDTH + 1e-6:
-            goal_handle.abort()
-            return result
         self.bridge.world.command_gripper(target >= panda.GRIPPER_OPEN_WIDTH / 2)
         start, width, still_since = self.bridge.sim_time, self.bridge.world.gripper_width(), self.bridge.sim_time
         while self.bridge.sim_time - start < GRIPPER_SETTLE_S and self.bridge.sim_time - still_since < GRIPPER_STILL_S:
@@ -190,8 +231,9 @@ class SimBridgeNode(ros.Node):
                 return result
             if abs(self.bridge.world.gripper_width() - width) > 1e-4:
                 width, still_since = self.bridge.world.gripper_width(), self.bridge.sim_time
-        result.position = self.bridge.world.gripper_width()
-        result.reached_goal = abs(result.position - target) <= GRIPPER_REACHED
+        width = self.bridge.world.gripper_width()
+        result.position = width / 2
+        result.reached_goal = abs(width - target) <= GRIPPER_REACHED
         result.stalled = not result.reached_goal
         if result.reached_goal:
             goal_handle.succeed()
@@ -224,9 +266,10 @@ class SimBridgeNode(ros.Node):
                 self._joints.publish(self.bridge.joint_state())
                 self._tf.publish(self.bridge.robot_tf())
             if self._camera_every and self._steps % self._camera_every == 0:
-                for name in self.bridge.publishing:
-                    for publisher, message in zip(self._cameras[name], self.bridge.camera_messages(name)):
-                        publisher.publish(message)
+                self.bridge.expose()
+            for name, messages in self.bridge.delivered():
+                for publisher, message in zip(self._cameras[name], messages):
+                    publisher.publish(message)
 
     def destroy_node(self):
         self.bridge.close()

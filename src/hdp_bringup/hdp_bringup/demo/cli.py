@@ -80,6 +80,9 @@ def configure(parser) -> None:
                              'the same flag as hdp eval hierarchy, so both run the same models')
     parser.add_argument('--low-level-checkpoint', type=Path, default=None,
                         help="controller_node's RK-Diffuser (default: the parameter file's, models/rk_diffuser_11tasks.pt)")
+    parser.add_argument('--sensor-profile', choices=('ideal', 'd415'), default=None,
+                        help="sim_bridge_node's camera sensor model: ideal renders or a D415's depth noise, holes "
+                             "and colour jitter (default: the parameter file's, ideal)")
     parser.add_argument('--json', action='store_true',
                         help='print summary.json on stdout (progress goes to stderr)')
     parser.add_argument('--record', action='store_true',
@@ -120,6 +123,8 @@ def parameter_overrides(args) -> list[str]:
         overrides.append(f'planner_node:checkpoint:={args.agent_checkpoint.resolve()}')
     if args.low_level_checkpoint:
         overrides.append(f'controller_node:checkpoint:={args.low_level_checkpoint.resolve()}')
+    if getattr(args, 'sensor_profile', None):
+        overrides.append(f'sim_bridge_node:sensor_profile:={args.sensor_profile}')
     return overrides
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidTopicNameException
@@ -13,6 +14,14 @@ from rclpy.validate_topic_name import validate_topic_name
 from hdp_msgs_py.message_yaml import get_message, message_from_yaml, message_to_yaml
 from .common import (DISCOVERY_WAIT, add_discovery_args, add_qos_args, cli_node, interrupted, qos_from_args,
                      qos_profile, spin_until)
+
+# A volatile reader of another vendor's DDS (Cyclone DDS, ...) takes a writer's samples only from
+# the first heartbeat it hears after it discovered the writer: a sample published before is
+# acknowledged and never delivered (a Fast DDS reader still gets it from the writer's history).
+# It discovers our writer up to one of Fast DDS's discovery heartbeats (1 s) and a resend after we
+# discovered it, so the first message waits this long for such a reader.
+FOREIGN_READER_SETTLE_S = 1.5
+FAST_DDS_VENDOR_ID = bytes((0x01, 0x0f))      # the first two bytes of an RTPS GUID name its vendor
 
 
 def configure(parser) -> None:
@@ -48,7 +57,8 @@ def configure(parser) -> None:
     p.add_argument('-w', '--wait-matching-subscriptions', type=int, default=None, metavar='N',
                    help='wait for N subscribers before publishing (default 1 with --once/--times)')
     p.add_argument('--max-wait', type=float, default=5.0, metavar='SEC',
-                   help='how long to wait for those subscribers (and, if reliable, their acknowledgements)')
+                   help='how long to wait for those subscribers, and (if reliable) for their acknowledgements '
+                        'before exiting (exit 1 without them)')
     p.add_argument('--qos-reliability', choices=['reliable', 'best_effort'], default='reliable')
     p.add_argument('--qos-durability', choices=['volatile', 'transient_local'], default='volatile')
     p.add_argument('--qos-depth', type=int, default=10)
@@ -144,6 +154,9 @@ def run_pub(args) -> int:
         if not spin_until(node, lambda: pub.get_subscription_count() >= wait_for, args.max_wait):
             print(f'warning: only {pub.get_subscription_count()} of {wait_for} subscribers matched '
                   f'within {args.max_wait} s; publishing anyway', file=sys.stderr)
+        elif wait_for and not all(bytes(info.endpoint_gid[:2]) == FAST_DDS_VENDOR_ID
+                                  for info in node.get_subscriptions_info_by_topic(args.topic)):
+            spin_until(node, lambda: False, FOREIGN_READER_SETTLE_S)     # until they know us too
         text = message_to_yaml(msg).strip().replace('\n', ' ')
         sent = 0
         while not interrupted():         # Ctrl-C ends an endless pub
@@ -153,7 +166,21 @@ def run_pub(args) -> int:
             if times and sent >= times:
                 break
             spin_until(node, lambda: False, 1.0 / args.rate)
-        if qos.reliability == ReliabilityPolicy.RELIABLE and not interrupted():
-            # a reliable sample is resent until acknowledged: stay up until it is
-            pub.wait_for_all_acked(Duration(seconds=args.max_wait))
+        # A reliable sample is resent until acknowledged: stay up until it is (ros2 topic pub's
+        # fixed keep-alive can end the process first, and the sample with it).
+        if qos.reliability == ReliabilityPolicy.RELIABLE and not _all_acknowledged(pub, args.max_wait) \
+                and not interrupted():
+            print(f'error: not every subscriber ({pub.get_subscription_count()} matched) acknowledged '
+                  f'what was published within {args.max_wait} s; it may not have arrived', file=sys.stderr)
+            return 1
     return 0
+
+
+def _all_acknowledged(pub, seconds: float) -> bool:
+    """Whether every matched reliable subscriber acknowledged all that `pub` sent within `seconds`
+    (waited in short slices, so that Ctrl-C ends the wait)."""
+    end = time.monotonic() + seconds
+    while not pub.wait_for_all_acked(Duration(seconds=min(0.1, max(0.0, end - time.monotonic())))):
+        if interrupted() or time.monotonic() >= end:
+            return False
+    return True
