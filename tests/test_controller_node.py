@@ -788,3 +788,38 @@ def test_the_arm_action_fails_a_segment_on_refusal_or_abort_and_cancels_one_that
     client.ready = False                                           # no controller at all
     arm.send(Time(sec=6), JointTrajectory())
     assert failed[-1] == (6, f'no FollowJointTrajectory server on {topics.ARM_ACTION}')
+
+
+@pytest.mark.dds
+def test_a_controller_that_was_stopped_says_so_instead_of_blaming_the_robot(ros_domain):
+    """SIGSTOP controller_node for longer than state_timeout_s while sim_bridge_node runs on: when it
+    continues, it names its own gap (the probe saw it blame the bridge: 'no /joint_states ...')."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
+    bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                               '-p', 'camera_rate_hz:=0.0'], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'method:=planner', '-p', 'state_timeout_s:=2.0'], env=env,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    echo = None
+    try:
+        time.sleep(8.0)                                  # both up, joint states flowing
+        echo = subprocess.Popen([sys.executable, '-m', 'hdp_tools.cli.main', 'topic', 'echo', topics.STATUS,
+                                 'std_msgs/msg/String', '--qos-durability', 'volatile', '--timeout', '20'],
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        time.sleep(3.0)
+        controller.send_signal(signal.SIGSTOP)
+        time.sleep(4.0)                                  # twice state_timeout_s, the bridge publishing on
+        controller.send_signal(signal.SIGCONT)
+        time.sleep(3.0)
+    finally:
+        for proc in (controller, bridge):
+            proc.send_signal(signal.SIGCONT)
+            proc.send_signal(signal.SIGINT)
+        controller_err = controller.communicate(timeout=30)[1]
+        bridge.communicate(timeout=30)
+        if echo is not None:
+            echo.terminate()
+    lines = echo.communicate(timeout=10)[0]
+    assert 'controller_node itself did not run for' in lines, lines + controller_err
+    assert 'no /joint_states' not in lines + controller_err

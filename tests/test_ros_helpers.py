@@ -159,6 +159,22 @@ def test_liveness_names_silent_joint_states_and_a_clock_that_stands_still():
         Liveness(0.0)
 
 
+def test_a_node_that_did_not_run_blames_itself_not_the_robot():
+    """A node stopped (SIGSTOP) or starved for longer than the timeout sees its own gap between
+    two watchdog calls: that silence is excused, and only silence after it names the robot."""
+    from hdp_ros.liveness import Liveness
+    live = Liveness(timeout_s=5.0)
+    live.heard(0.0)
+    for t in (0.5, 1.0):
+        assert live.stalled(t) is None and live.problem(t, t) is None
+    assert live.stalled(21.0) == pytest.approx(20.0)               # stopped from 1.0 to 21.0
+    assert live.problem(21.0, 21.0) is None                         # not 'no /joint_states for 21 s'
+    assert live.stalled(21.5) is None and live.problem(21.5, 21.5) is None
+    for t in (22.0, 22.5, 23.0, 23.5, 24.0, 24.5, 25.0, 25.5, 26.0, 26.5):    # the watchdog runs again ...
+        assert live.stalled(t) is None
+    assert live.problem(26.5, 26.5).startswith('no /joint_states for 5.5 s')    # ... and the robot is silent
+
+
 class _Quiet(ros.Node):
     PARAMETERS = {}
 

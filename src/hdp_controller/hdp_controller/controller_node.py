@@ -131,6 +131,11 @@ class ControllerNode(ros.Node):
         self.logic.on_joint_state(msg)
 
     def _watch(self):
+        stalled = self.liveness.stalled(time.monotonic())
+        if stalled is not None:      # this process was stopped or starved: not the robot's fault
+            self.status.error(f'{self.get_name()} itself did not run for {stalled:.1f} s (stopped or starved of '
+                              'CPU); not blaming the robot for that silence')
+            return
         problem = self.liveness.problem(time.monotonic(), self._now())
         if problem is not None:
             self._send(self.logic.robot_gone(problem))

@@ -23,6 +23,7 @@ class Liveness:
         self.heard_s: float | None = None        # wall time of the last /joint_states
         self._clock: float | None = None         # the node's clock when last seen to change
         self._clock_moved_s: float | None = None
+        self._checked_s: float | None = None     # wall time of the last stalled() call
 
     def heard(self, wall_s: float) -> None:
         """A /joint_states message arrived."""
@@ -35,6 +36,18 @@ class Liveness:
             self.heard_s = max(self.heard_s, wall_s)
         if self._clock_moved_s is not None:
             self._clock_moved_s = max(self._clock_moved_s, wall_s)
+
+    def stalled(self, wall_s: float) -> float | None:
+        """Seconds this node itself did not run since the last call, when longer than timeout_s (it
+        was stopped, or starved of CPU), else None. The silence meanwhile is the node's own, not the
+        robot's: it is excused, and messages queued meanwhile arrive next. Call it from the same
+        periodic timer as problem(), first."""
+        gap = None if self._checked_s is None else wall_s - self._checked_s
+        self._checked_s = wall_s
+        if gap is None or gap <= self.timeout_s:
+            return None
+        self.excuse(wall_s)
+        return gap
 
     def problem(self, wall_s: float, clock_s: float) -> str | None:
         """Why the robot looks gone (for the node's status and results), or None.
