@@ -7,6 +7,7 @@ from another process, never on shared memory.
     python dds_procs.py sub string|trajectory|image [--qos ...] [--expect N]
     python dds_procs.py raising_sub        # callback raises on the first message
     python dds_procs.py params --ros-args ...
+    python dds_procs.py set_params NODE --params '[[name, value], ...]'   # as `ros2 param set`, one by one
     python dds_procs.py foreign_writer     # plain cyclonedds writer, a string that is not UTF-8
     python dds_procs.py foreign_reader [--stop-on-receipt]   # plain cyclonedds reader: UDP only
     python dds_procs.py gripper_goals --goals '[[position, max_effort], ...]'   # GripperCommand goals
@@ -28,7 +29,7 @@ from hdp_msgs_py import conversions
 from hdp_ros import ros
 from hdp_msgs_py.msg import String, TFMessage, TransformStamped
 from rclpy.executors import ExternalShutdownException
-from rclpy.parameter import Parameter
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 QOS = {
@@ -149,6 +150,27 @@ def run_params(args):
          **{n: node.get_parameter(n).value
             for n in ('checkpoint', 'step_budget', 'timeout_sec', 'cameras', 'untouched')},
          status_topic=node.resolve_topic_name('/hdp/status'))
+
+
+def run_set_params(args):
+    """Set each parameter of node ``args.kind`` on its own, as `ros2 param set` does, then read them all
+    back: each answer (successful, reason) and the values the node holds afterwards."""
+    from rclpy.parameter_client import AsyncParameterClient
+    node = make_node('param_setter')
+    client = AsyncParameterClient(node, args.kind)
+    if not client.wait_for_services(timeout_sec=args.timeout):
+        raise SystemExit(f'no parameter services of {args.kind} within {args.timeout} s')
+    answers = []
+    for name, value in json.loads(args.params):
+        future = client.set_parameters([Parameter(name, value=value)])
+        spin_until(node, future.done, args.timeout)
+        result, = future.result().results
+        answers.append([name, result.successful, result.reason])
+    names = sorted({name for name, _ in json.loads(args.params)})
+    future = client.get_parameters(names)
+    spin_until(node, future.done, args.timeout)
+    values = {name: parameter_value_to_python(value) for name, value in zip(names, future.result().values)}
+    emit(answers=answers, values=values)
 
 
 def run_clock(args):
@@ -279,6 +301,7 @@ def main():
     parser.add_argument('--timeout', type=float, default=15.0)
     parser.add_argument('--stop-on-receipt', action='store_true')
     parser.add_argument('--goals', default='[]')
+    parser.add_argument('--params', default='[]')
     args = parser.parse_args(argv)
     try:
         globals()[f'run_{args.role}'](args)

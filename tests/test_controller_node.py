@@ -366,11 +366,11 @@ def _controller(policy=None, needs_points=False, **kwargs):
 
 
 def _kinds(outputs):
-    """Each record's kind: 'arm' (ArmCommand), 'gripper' (FingerCommand), 'result' (SegmentResult),
+    """Each record's kind: 'arm' (ArmCommand), 'gripper' (FingerCommand), 'result' (SegmentResult), 'hold',
     or a StatusLine's 'info' / 'error'; any other record is an error."""
-    from hdp_controller.segment_controller import ArmCommand, FingerCommand, SegmentResult
+    from hdp_controller.segment_controller import ArmCommand, FingerCommand, HoldArm, SegmentResult
     from hdp_msgs_py.outcome import StatusLine
-    kinds = {ArmCommand: 'arm', FingerCommand: 'gripper', SegmentResult: 'result'}
+    kinds = {ArmCommand: 'arm', FingerCommand: 'gripper', SegmentResult: 'result', HoldArm: 'hold'}
     return [('error' if out.error else 'info') if type(out) is StatusLine else kinds[type(out)] for out in outputs]
 
 
@@ -392,7 +392,8 @@ def test_controller_pairs_the_gripper_goal_by_stamp_and_reports_done():
     out = controller.step(0.05)
     assert _kinds(out) == ['arm', 'info']
     assert out[0].stamp == Time(sec=3) and out[0].plan.method == 'fake' and out[0].plan.draws == 1
-    assert out[1].text.startswith('segment 3.000: fake to (') and out[1].text.endswith(', then close the gripper')
+    assert out[1].text.startswith('segment 3.000: fake to (') and ', then close the gripper (planned in ' in out[1].text
+    assert out[1].text.endswith(' s, 1 draw)')
     end = np.asarray(out[0].trajectory.points[-1].positions)
     controller.on_joint_state(joint_state_msg(end))
     out = controller.step(30.0)
@@ -421,6 +422,29 @@ def test_a_robot_that_stops_answering_fails_the_running_segment_naming_why():
     assert _kinds(out) == ['error', 'result'] and out[1].header.stamp.sec == 3
     assert out[0].text == 'segment 3.000 failed: no /joint_states for 5.2 s'
     assert out[1].header.frame_id == 'failed: no /joint_states for 5.2 s' and controller.running is None
+
+
+def test_an_operators_stop_holds_the_arm_where_it_is_and_fails_the_running_segment():
+    from hdp_controller.segment_controller import SegmentController
+    assert _kinds(SegmentController(FakePolicy([REACHING_Q]), False, 0.5, 5.0).hold('stop')) == ['hold', 'info']
+    assert SegmentController(FakePolicy([REACHING_Q]), False, 0.5, 5.0).hold('stop')[0].trajectory is None
+    controller = _controller()
+    out = controller.hold('stopped by /hdp/stop')                    # idle: the arm is held all the same
+    assert _kinds(out) == ['hold', 'info'] and out[1].text == 'holding the arm: stopped by /hdp/stop'
+    goal = reachable_goal()
+    controller.on_gripper_goal(gripper_goal_msg(False, stamp_sec=3))
+    controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), now_s=0.0)
+    assert _kinds(controller.step(0.05)) == ['arm', 'info']
+    moving = panda.HOME + 0.02
+    controller.on_joint_state(joint_state_msg(moving, qd=np.full(7, 0.5)))
+    out = controller.hold('stopped by /hdp/stop')
+    assert _kinds(out) == ['hold', 'info', 'error', 'result'] and controller.running is None
+    # joint_trajectory_controller's own hold command: one point where the arm is, at time 0, now.
+    names, positions, times, velocities = conversions.parse_joint_trajectory(out[0].trajectory)
+    assert names == list(panda.ARM_JOINTS) and np.allclose(positions, [moving]) and times.tolist() == [0.0]
+    assert velocities is None and out[0].trajectory.header.stamp.sec == 0
+    assert out[3].header.stamp.sec == 3 and out[3].header.frame_id == 'failed: stopped by /hdp/stop'
+    assert _kinds(controller.step(0.1)) == []                       # nothing left to follow
 
 
 def test_controller_without_a_gripper_goal_keeps_the_gripper_after_a_short_wait():
@@ -785,6 +809,15 @@ def test_the_arm_action_fails_a_segment_on_refusal_or_abort_and_cancels_one_that
     arm.send(Time(sec=5), JointTrajectory())
     assert handle.cancelled == 0 and len(failed) == 2
 
+    arm.send(Time(sec=7), JointTrajectory())                       # an operator's stop: cancelled
+    handle = _FakeGoalHandle()
+    client.goals[-1][1].set_result(handle)
+    arm.cancel()
+    arm.segment_ended(Header(stamp=Time(sec=7), frame_id='failed: stopped by /hdp/stop'))
+    assert handle.cancelled == 1
+    arm.cancel()                                                   # nothing active: nothing to cancel
+    assert handle.cancelled == 1
+
     client.ready = False                                           # no controller at all
     arm.send(Time(sec=6), JointTrajectory())
     assert failed[-1] == (6, f'no FollowJointTrajectory server on {topics.ARM_ACTION}')
@@ -823,3 +856,14 @@ def test_a_controller_that_was_stopped_says_so_instead_of_blaming_the_robot(ros_
     lines = echo.communicate(timeout=10)[0]
     assert 'controller_node itself did not run for' in lines, lines + controller_err
     assert 'no /joint_states' not in lines + controller_err
+
+
+@pytest.mark.unit
+def test_warm_up_plans_one_segment_from_home_and_takes_a_refusal_in_its_stride():
+    from hdp_controller.segment_planning import warm_up
+    for policy in (FakePolicy([panda.HOME]), FakePolicy(failure='no_path')):
+        assert warm_up(policy) >= 0.0
+        request, = policy.requests
+        np.testing.assert_allclose(request.q, panda.HOME)
+        assert np.linalg.norm(request.goal_pose[:3] - request.start_pose[:3]) == pytest.approx(0.05)
+        assert request.points.shape == (1024, 3) and np.all(np.isfinite(request.points))

@@ -436,6 +436,14 @@ def test_an_outcome_is_refused_unless_well_formed():
 
 # --- processes ---------------------------------------------------------------------------------
 
+@pytest.mark.unit
+def test_the_agent_warms_up_on_a_synthetic_view(tiny_checkpoint):
+    """planner_node warms the agent up at start, so the first instruction pays no first-call cost."""
+    from hdp_planner.agent import NextBestPoseAgent
+    agent = NextBestPoseAgent.from_checkpoint(tiny_checkpoint, camera_size=(64, 48))
+    assert agent.warm_up() > 0.0
+
+
 @pytest.fixture
 def tiny_checkpoint(tmp_path):
     """An untrained next-best-pose agent small enough to load and predict in a moment."""
@@ -562,6 +570,41 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
     assert facts['outcomes'] == [{'instruction': 'open the middle drawer', 'result': 'failed',
                                   'reason': '2 segments done without success', 'segments': 2}]
     assert planner.returncode == 0, errors[0]
+
+
+@pytest.mark.dds
+def test_hdp_stop_ends_the_instruction_stopped_and_holds_the_moving_arm(ros_domain, tiny_checkpoint):
+    """The whole chain of /hdp/stop: planner_node answers it and ends its instruction 'stopped';
+    controller_node, told on /hdp/hold, holds the arm mid-segment on the sim bridge. The planner's
+    instruction waits for camera frames (the probe silences the cameras); the probe itself sends
+    the slow segment that is running when it calls /hdp/stop."""
+    env = _env(ros_domain)
+    bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                               '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=2.0',
+                               '-p', 'task:=reach_target', '-p', 'seed:=3'],
+                              env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'method:=planner', '-p', 'use_sim_time:=true', '-p', 'velocity_scale:=0.03'],
+                                  env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'camera_timeout_s:=120.0'],
+                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        probe = subprocess.run([sys.executable, __file__, 'stopper'], env=env, text=True, capture_output=True,
+                               timeout=150)
+    finally:
+        errors = _stop(planner, controller, bridge)
+    assert probe.returncode == 0, probe.stderr + '\n'.join(errors)
+    facts = json.loads(probe.stdout.strip().splitlines()[-1])
+    assert facts['response'] == [True, "stopped 'open the middle drawer'; arm held"], facts['status']
+    assert facts['outcomes'] == [{'instruction': 'open the middle drawer', 'result': 'stopped',
+                                  'reason': 'stopped by /hdp/stop', 'segments': 0}]
+    assert facts['moving_at_stop'] > 0.02                          # it was stopped mid-segment ...
+    assert facts['still_after_s'] is not None and facts['drift_after'] < 0.005, facts   # ... and stays put
+    assert facts['result'] == 'failed: stopped by /hdp/stop', facts['status']
+    assert 'controller_node: holding the arm: stopped by /hdp/stop' in facts['status']
+    assert facts['second_response'] == [True, 'nothing was running; arm held']
+    assert planner.returncode == 0 and controller.returncode == 0, errors
 
 
 # --- hdp launch -----------------------------------------------------------------------------------
@@ -764,7 +807,67 @@ def controller() -> None:
     rclpy.try_shutdown()
 
 
+def stopper() -> None:
+    """Run a slow segment on controller_node + sim_bridge_node while planner_node waits with an
+    instruction; call /hdp/stop mid-segment; report the answer, the outcome and the arm's motion."""
+    from std_srvs.srv import Trigger
+
+    from hdp_motion import kinematics
+    from hdp_msgs_py.msg import PoseStamped, String
+    node, status = _node('stop_probe')
+    outcomes, results, joints = [], [], []
+    node.create_subscription(String, topics.OUTCOME, lambda m: outcomes.append(json.loads(m.data)),
+                             topics.INSTRUCTION_QOS)
+    node.create_subscription(Header, topics.SEGMENT_RESULT, results.append, 10)
+    node.create_subscription(JointState, topics.JOINT_STATES, joints.append, 10)
+    instruction = node.create_publisher(String, topics.INSTRUCTION, topics.INSTRUCTION_QOS)
+    cameras = node.create_publisher(String, topics.SIM_CAMERAS, topics.COMMAND_QOS)
+    pose = node.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
+    gripper = node.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS)
+    stop = node.create_client(Trigger, topics.STOP)
+    assert _spin(node, 90, lambda: stop.service_is_ready() and node.count_subscribers(topics.HOLD) >= 1
+                 and min(p.get_subscription_count() for p in (instruction, cameras, pose, gripper)) > 0
+                 and joints), f'the graph did not come up; status: {status}'
+
+    def arm(msg):
+        names = list(msg.name)
+        return (np.array([msg.position[names.index(n)] for n in panda.ARM_JOINTS]),
+                np.array([msg.velocity[names.index(n)] for n in panda.ARM_JOINTS]))
+
+    def call():
+        future = stop.call_async(Trigger.Request())
+        assert _spin(node, 10, future.done), 'no answer from /hdp/stop'
+        return [future.result().success, future.result().message]
+    cameras.publish(String(data=''))                 # the instruction waits for frames: it stays running
+    _spin(node, 1.0)
+    instruction.publish(String(data='open the middle drawer'))
+    goal = kinematics.fk_pose(torch.as_tensor(panda.HOME + 0.1, dtype=torch.float64)).numpy()
+    for stamp_sec in (1, 2, 3):                      # a controller that has not heard the robot yet refuses
+        gripper.publish(JointState(header=Header(stamp=Time(sec=stamp_sec)), name=[topics.GRIPPER_GOAL_JOINT],
+                                   position=[panda.GRIPPER_OPEN_WIDTH]))
+        pose.publish(conversions.xyz_quat_to_pose_stamped(goal[:3], goal[3:], topics.NBP_FRAME, Time(sec=stamp_sec)))
+        if _spin(node, 20, lambda: results or np.abs(arm(joints[-1])[1]).max() > 0.03):
+            if not results:
+                break
+            results.clear()
+    moving = float(np.abs(arm(joints[-1])[1]).max())
+    response = call()
+    stopped_at = len(joints)
+    assert _spin(node, 10, lambda: results and outcomes), f'no result or outcome; status: {status}'
+    _spin(node, 1.0, lambda: any(np.abs(arm(m)[1]).max() < 0.01 for m in joints[stopped_at:]))
+    still = next((i for i, m in enumerate(joints[stopped_at:], stopped_at) if np.abs(arm(m)[1]).max() < 0.01), None)
+    _spin(node, 1.0)
+    drift = float(np.abs(arm(joints[-1])[0] - arm(joints[still])[0]).max()) if still is not None else None
+    facts = {'response': response, 'moving_at_stop': moving, 'outcomes': outcomes, 'result': results[0].frame_id,
+             'still_after_s': None if still is None else conversions.time_to_seconds(joints[still].header.stamp)
+             - conversions.time_to_seconds(joints[stopped_at].header.stamp),
+             'drift_after': drift, 'second_response': call(), 'status': status}
+    print(json.dumps(facts), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
 if __name__ == '__main__':
     {'listen': lambda: listen(int(sys.argv[2]), float(sys.argv[3]), *sys.argv[4:]),
      'burst': lambda: burst(int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])),
-     'controller': controller}[sys.argv[1]]()
+     'controller': controller, 'stopper': stopper}[sys.argv[1]]()

@@ -73,3 +73,11 @@ def test_refuses_non_increasing_times_and_nan():
         accept(msg, 0.0, panda.HOME)
     with pytest.raises(ValueError, match='no points'):
         accept(trajectory([panda.HOME], [1.0]).__class__(joint_names=JOINTS), 0.0, panda.HOME)
+
+
+def test_one_point_at_time_zero_holds_there():
+    """joint_trajectory_controller's hold command (set_hold_position): the arm stays at that point."""
+    here = panda.HOME + 0.01
+    active = accept(trajectory([here], [0.0]), now=5.0, current=panda.HOME)
+    assert np.allclose(active.sample(5.0), here) and np.allclose(active.sample(9.0), here)
+    assert active.end_time == 5.0

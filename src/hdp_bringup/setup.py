@@ -42,6 +42,7 @@ setup(
             'launch = hdp_bringup.launch_cli:configure',
             'demo = hdp_bringup.demo.cli:configure',
             'bench.soak = hdp_bringup.soak:configure',
+            'bench.stop = hdp_bringup.stop_bench:configure',
         ],
     },
 )

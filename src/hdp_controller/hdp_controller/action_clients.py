@@ -57,6 +57,10 @@ class ArmAction:
         else:
             self._cancel()
 
+    def cancel(self) -> None:
+        """Hold the arm (an operator's stop): cancelling its goal makes the controller hold position."""
+        self._cancel()
+
     def _cancel(self) -> None:
         if self._active is not None and self._active[1] is not None:
             self._active[1].cancel_goal_async()

@@ -24,14 +24,21 @@ from hdp_msgs_py.outcome import StatusLine
 from .action_clients import ArmAction, GripperAction
 from .methods import LEARNED, METHODS
 from .policy import load_policy
-from .segment_controller import ArmCommand, FingerCommand, SegmentController, SegmentResult
-from .segment_planning import PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M
+from .segment_controller import ArmCommand, FingerCommand, HoldArm, SegmentController, SegmentResult
+from .segment_planning import PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, warm_up
 from .trajectory import VELOCITY_SCALE
 
 _STEP_S = 0.05
 _WATCH_S = 0.5
 _CAMERA = 'front'              # RK-Diffuser sees the front camera only, as in training
 INTERFACES = ('topic', 'action')
+
+
+def _segment_settings(p: dict) -> dict:
+    """SegmentController.configure()'s arguments from the node's parameters."""
+    return {'velocity_scale': p['velocity_scale'], 'segment_timeout_s': p['segment_timeout_s'],
+            'reach_tolerance': (p['reach_tolerance_m'], p['reach_tolerance_deg']),
+            'plan_attempts': p['plan_attempts'], 'carry_on_unsettled': p['unsettled'] == 'carry_on'}
 
 
 class ControllerNode(ros.Node):
@@ -57,9 +64,12 @@ class ControllerNode(ros.Node):
         'gripper_action': (topics.GRIPPER_ACTION, 'the GripperCommand action (franka_gripper serves gripper_action)'),
     }
 
-    def __init__(self):
-        super().__init__('controller_node')
-        p = self.declare_parameter_table()
+    # Read when a segment starts: a change reaches the next segment (and liveness at once).
+    RUNTIME = frozenset({'velocity_scale', 'segment_timeout_s', 'unsettled', 'state_timeout_s', 'reach_tolerance_m',
+                         'reach_tolerance_deg', 'plan_attempts'})
+
+    @staticmethod
+    def check_parameters(p: dict) -> None:
         if p['method'] not in METHODS:
             raise ros.StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
         if not 0.0 < p['velocity_scale'] <= 1.0:
@@ -74,6 +84,10 @@ class ControllerNode(ros.Node):
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         if p['plan_attempts'] < 1:
             raise ros.StartupError(f"parameter 'plan_attempts' must be >= 1, got {p['plan_attempts']}")
+
+    def __init__(self):
+        super().__init__('controller_node')
+        p = self.declare_parameter_table()
         try:
             limits = panda.limits_for(p['robot_type'])
         except ValueError as err:
@@ -84,12 +98,10 @@ class ControllerNode(ros.Node):
         except ValueError as err:          # CheckpointError: missing, damaged or not ours; a device not here
             raise ros.StartupError(f"cannot load the {p['method']} policy: {err}") from None
         arm_joints = panda.joint_names(p['joint_prefix'])
+        warm_up_s = warm_up(policy, arm_joints, limits)    # the first segment pays no first-call cost
         self.logic = SegmentController(
-            policy, needs_points=p['method'] in LEARNED, velocity_scale=p['velocity_scale'],
-            segment_timeout_s=p['segment_timeout_s'], arm_joints=arm_joints,
-            finger_joints=panda.finger_joint_names(p['joint_prefix']),
-            reach_tolerance=(p['reach_tolerance_m'], p['reach_tolerance_deg']), limits=limits,
-            carry_on_unsettled=p['unsettled'] == 'carry_on', plan_attempts=p['plan_attempts'])
+            policy, needs_points=p['method'] in LEARNED, arm_joints=arm_joints,
+            finger_joints=panda.finger_joint_names(p['joint_prefix']), limits=limits, **_segment_settings(p))
 
         self.status = ros.Status(self)
         self._arm = self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS)
@@ -102,6 +114,9 @@ class ControllerNode(ros.Node):
         self.gripper_action = (GripperAction(self, p['gripper_action']) if p['gripper_interface'] == 'action'
                                else None)
         self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
+        # planner_node's /hdp/stop: frame_id says why.
+        self.create_subscription(Header, topics.HOLD, lambda m: self._send(self.logic.hold(m.frame_id)),
+                                 topics.COMMAND_QOS)
         self.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
                                  lambda m: self._send(self.logic.on_gripper_goal(m)), topics.COMMAND_QOS)
         self.liveness = Liveness(p['state_timeout_s'])
@@ -115,7 +130,12 @@ class ControllerNode(ros.Node):
         # On the wall clock: under use_sim_time the timer above stops with the simulator.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
         sampler = f" ({p['sampler']} sampler)" if p['method'] in LEARNED else ''
-        self.status.info(f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']}")
+        self.status.info(f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']} "
+                         f'(warmed up in {warm_up_s:.2f} s)')
+
+    def apply_parameters(self, p: dict) -> None:
+        self.logic.configure(**_segment_settings(p))
+        self.liveness.set_timeout(p['state_timeout_s'])
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -151,6 +171,10 @@ class ControllerNode(ros.Node):
                 case ArmCommand() if self.arm_action is not None:
                     self.arm_action.send(out.stamp, out.trajectory)
                 case ArmCommand():
+                    self._arm.publish(out.trajectory)
+                case HoldArm() if self.arm_action is not None:
+                    self.arm_action.cancel()
+                case HoldArm() if out.trajectory is not None:
                     self._arm.publish(out.trajectory)
                 case FingerCommand() if self.gripper_action is not None:
                     self.gripper_action.send(out.trajectory)

@@ -10,7 +10,7 @@ One segment at a time (the protocol is in the package README):
    waypoint and still, then the gripper command and the fingers settling, then 'done'.
 
 ``SegmentController`` holds that state. Every method returns what to publish, as records:
-ArmCommand, FingerCommand, SegmentResult and StatusLine. A refusal is a status line and a
+ArmCommand, FingerCommand, HoldArm, SegmentResult and StatusLine. A refusal is a status line and a
 'failed: ...' result, never a trajectory.
 """
 
@@ -58,6 +58,14 @@ class FingerCommand:
 
 
 @dataclasses.dataclass(frozen=True)
+class HoldArm:
+    """Stop the arm where it is: cancel the active FollowJointTrajectory goal, or on the topic send
+    ``trajectory``, joint_trajectory_controller's own hold command (one point, the arm's latest
+    position, time_from_start 0); JTC refuses an empty trajectory. None: no joint state yet."""
+    trajectory: JointTrajectory | None
+
+
+@dataclasses.dataclass(frozen=True)
 class SegmentResult:
     """Publish on /hdp/segment_result: stamp the NBP's, frame_id 'done' or 'failed: <why>'.
     plan: how the segment was planned, when planning refused it."""
@@ -100,10 +108,7 @@ class SegmentController:
                  limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'], carry_on_unsettled: bool = False,
                  plan_attempts: int = PLAN_ATTEMPTS, scene: Callable | None = None):
         self.policy, self.needs_points, self.limits, self.scene = policy, needs_points, limits, scene
-        self.plan_attempts = plan_attempts              # plan_within_reach
-        self.carry_on_unsettled = carry_on_unsettled    # SegmentExecution.carry_on
-        self.reach_tolerance = reach_tolerance
-        self.velocity_scale, self.segment_timeout_s = velocity_scale, segment_timeout_s
+        self.configure(velocity_scale, segment_timeout_s, reach_tolerance, plan_attempts, carry_on_unsettled)
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
         self.state: ArmState | None = None
         self.state_stamp_ns = 0
@@ -113,6 +118,14 @@ class SegmentController:
         self.gripper_goals: dict[int, bool] = {}     # NBP stamp (ns) -> open
         self.pending: _Pending | None = None
         self.running: tuple[object, SegmentExecution] | None = None    # (NBP stamp, execution)
+
+    def configure(self, velocity_scale: float, segment_timeout_s: float, reach_tolerance: tuple[float, float] | None,
+                  plan_attempts: int, carry_on_unsettled: bool) -> None:
+        """How segments are planned and judged; a change reaches the next segment to start."""
+        self.plan_attempts = plan_attempts              # plan_within_reach
+        self.carry_on_unsettled = carry_on_unsettled    # SegmentExecution.carry_on
+        self.reach_tolerance = reach_tolerance
+        self.velocity_scale, self.segment_timeout_s = velocity_scale, segment_timeout_s
 
     # -- observations --------------------------------------------------------------------
     def on_joint_state(self, msg) -> None:
@@ -215,7 +228,8 @@ class SegmentController:
         gripper = '' if act is None else f', then {"open" if act else "close"} the gripper'
         return out + [ArmCommand(stamp, trajectory, report), StatusLine(
             f'segment {stamp_label(stamp)}: {self.policy.name} to ({x:.3f}, {y:.3f}, {z:.3f}): '
-            f'{len(trajectory.points)} points over {duration:.2f} s{gripper}')]
+            f'{len(trajectory.points)} points over {duration:.2f} s{gripper} (planned in {report.seconds:.2f} s, '
+            f'{report.draws} draw{"s" if report.draws > 1 else ""})')]
 
     def arm_failed(self, stamp, why: str) -> list:
         """The arm controller refused or aborted segment ``stamp``'s trajectory (the action
@@ -233,6 +247,13 @@ class SegmentController:
             return []
         self.pending = self.running = None
         return self._refuse(current, why, 'segment {} failed')
+
+    def hold(self, why: str) -> list:
+        """An operator's stop: hold the arm where it is, whatever it was doing, and end the pending
+        or running segment 'failed: <why>'."""
+        trajectory = None if self.state is None else conversions.build_joint_trajectory(
+            self.arm_joints, self.state.q[None], [0.0])
+        return [HoldArm(trajectory), StatusLine(f'holding the arm: {why}')] + self.robot_gone(why)
 
     def _follow(self, now_s: float) -> list:
         stamp, execution = self.running

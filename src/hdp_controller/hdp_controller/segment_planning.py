@@ -15,12 +15,14 @@ import time
 import numpy as np
 import torch
 
+from hdp_data import workspace
 from hdp_motion import kinematics, panda
 
 from .inputs import ArmState, SegmentRefused
 from .low_level import SegmentRequest, nearest_of_draws
+from .observation import workspace_points
 from .refine import goal_error
-from .trajectory import TrajectoryError, joint_trajectory
+from .trajectory import VELOCITY_SCALE, TrajectoryError, joint_trajectory
 
 # How far a plan's last waypoint may end from its NBP. On the validation seeds 900-909 (all six
 # tasks, oracle NBPs, rkd with the graph's DDIM sampler) 165 of 168 segments ended within 0.1 mm
@@ -120,3 +122,20 @@ def plan_segment(policy, request: SegmentRequest, joint_names, velocity_scale: f
         raise SegmentRefused(why, PlanReport(policy.name, draws, time.perf_counter() - started, miss,
                                              stats=stats)) from None
     return msg, PlanReport(policy.name, draws, time.perf_counter() - started, miss, stats=stats)
+
+
+def warm_up(policy, joint_names=panda.ARM_JOINTS, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']) -> float:
+    """One plan_segment from the home posture to a pose 5 cm ahead, on a flat table's points, so
+    that the first real segment does not pay for torch's first calls; returns its seconds (a
+    refusal is as good a warm-up as a plan)."""
+    q = panda.HOME
+    goal = kinematics.fk_pose(torch.as_tensor(q, dtype=torch.float64)).numpy()
+    goal[0] += 0.05
+    points = workspace_points(np.array([[*workspace.TABLE_CENTER_XY, workspace.TABLE_TOP_Z + 0.01]]))
+    request = segment_request(ArmState(q, np.zeros(7), panda.GRIPPER_OPEN_WIDTH), True, goal, True, points)
+    started = time.perf_counter()
+    try:
+        plan_segment(policy, request, joint_names, VELOCITY_SCALE, limits=limits)
+    except SegmentRefused:
+        pass
+    return time.perf_counter() - started

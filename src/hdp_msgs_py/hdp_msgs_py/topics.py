@@ -39,6 +39,10 @@ GRIPPER_GOAL_JOINT = 'panda_gripper'           # the goal's one name; position 0
 SEGMENT_DONE = 'done'                          # the arm arrived and the gripper acted
 SEGMENT_FAILED = 'failed: '                    # followed by the reason; nothing moved, or it stopped
 NBP_FRAME = 'world'                            # the only frame an NBP may be given in
+# An operator's stop: planner_node serves STOP (std_srvs/Trigger), ends the running instruction
+# 'stopped' and sends HOLD (std_msgs/Header, frame_id the reason) to controller_node, which holds the arm.
+STOP = '/hdp/stop'
+HOLD = '/hdp/hold'
 
 
 def color_image(camera: str) -> str:

@@ -6,12 +6,14 @@ milliseconds on one CPU core.
 
 from __future__ import annotations
 
+import time
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from hdp_data import instructions
+from hdp_data import instructions, workspace
+from hdp_motion import panda
 from hdp_msgs_py.conversions import Intrinsics, camera_info_to_intrinsics, transform_to_matrix
 
 from . import checkpoint
@@ -98,6 +100,19 @@ class NextBestPoseAgent:
         if self.grounding is None:
             return Reading(instruction, False, None, 0.0)
         return self.grounding.read(instruction)
+
+    def warm_up(self) -> float:
+        """One prediction on a synthetic view (a grey table seen from above), so the first real
+        instruction does not pay for torch's first calls; returns its seconds."""
+        width, height = self.camera_size or (128, 96)
+        intrinsics = Intrinsics(fx=width, fy=width, cx=width / 2, cy=height / 2, width=width, height=height)
+        above_table = np.diag([1.0, -1.0, -1.0, 1.0])            # optical z pointing down
+        above_table[:3, 3] = [*workspace.TABLE_CENTER_XY, workspace.TABLE_TOP_Z + 1.0]
+        frame = (np.full((height, width, 3), 128, np.uint8), np.full((height, width), 1000, np.uint16))
+        started = time.perf_counter()
+        self.predict({'warm_up': frame}, {'warm_up': intrinsics}, {'warm_up': above_table},
+                     instructions.evaluation_instruction('reach_target', 0, 0), (panda.HOME, True))
+        return time.perf_counter() - started
 
     def predict(self, rgb_depth_per_camera: dict, camera_infos: dict, camera_to_world: dict,
                 instruction: str, proprio) -> NextBestPose:

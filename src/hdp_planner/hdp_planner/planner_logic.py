@@ -199,13 +199,8 @@ class PlannerLoop:
                  result_timeout_s: float = 60.0, observations: Observations | None = None,
                  min_confidence: float = DEFAULT_MIN_CONFIDENCE, queue_policy: str = 'replace',
                  max_queued: int = DEFAULT_MAX_QUEUED):
-        if queue_policy not in QUEUE_POLICIES:
-            raise ValueError(f'queue_policy must be one of {", ".join(QUEUE_POLICIES)}, got {queue_policy!r}')
-        self.queue_policy, self.max_queued = queue_policy, max_queued
+        self.configure(max_segments, camera_timeout_s, result_timeout_s, min_confidence, queue_policy, max_queued)
         self.agent, self.vocabulary = agent, None if vocabulary is None else tuple(vocabulary)
-        self.min_confidence = min_confidence
-        self.max_segments = max_segments
-        self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s
         self.observations = observations or Observations()
         self.instruction: str | None = None
         self.waiting: collections.deque[str] = collections.deque()    # to start, oldest first
@@ -217,6 +212,18 @@ class PlannerLoop:
         self.success_heard = False                # a robot without /hdp/sim/success never sets it
         self.success: bool | None = None          # since the last segment ended; None: not yet heard
         self._last_stamp_ns = 0
+
+    def configure(self, max_segments: int, camera_timeout_s: float, result_timeout_s: float,
+                  min_confidence: float, queue_policy: str, max_queued: int) -> None:
+        """The limits instructions run under, also while one runs: each is read where it applies
+        (max_segments before each next segment, a timeout when its wait starts, min_confidence at
+        an instruction's first NBP, queue_policy and max_queued when an instruction arrives)."""
+        if queue_policy not in QUEUE_POLICIES:
+            raise ValueError(f'queue_policy must be one of {", ".join(QUEUE_POLICIES)}, got {queue_policy!r}')
+        self.queue_policy, self.max_queued = queue_policy, max_queued
+        self.min_confidence = min_confidence
+        self.max_segments = max_segments
+        self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s
 
     # -- messages -------------------------------------------------------------------------
     def on_success(self, value: bool) -> None:

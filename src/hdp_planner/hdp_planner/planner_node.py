@@ -12,6 +12,7 @@ import functools
 import time
 
 from rclpy.clock import Clock, ClockType
+from std_srvs.srv import Trigger
 
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
@@ -28,6 +29,12 @@ from .planner_logic import (DEFAULT_MAX_QUEUED, DEFAULT_MIN_CONFIDENCE, QUEUE_PO
 
 _STEP_S = 0.1
 _WATCH_S = 0.5
+
+
+def _limits(p: dict) -> dict:
+    """PlannerLoop.configure()'s arguments from the node's parameters."""
+    return {name: p[name] for name in ('max_segments', 'camera_timeout_s', 'result_timeout_s', 'min_confidence',
+                                       'queue_policy', 'max_queued')}
 
 
 class PlannerNode(ros.Node):
@@ -49,9 +56,12 @@ class PlannerNode(ros.Node):
                                    '--height); frames of another size are resampled to it; [0, 0] takes them as they come'),
     }
 
-    def __init__(self):
-        super().__init__('planner_node')
-        p = self.declare_parameter_table()
+    # Read at each use by the loop (when each takes effect: the package README).
+    RUNTIME = frozenset({'max_segments', 'camera_timeout_s', 'result_timeout_s', 'min_confidence', 'queue_policy',
+                         'max_queued', 'state_timeout_s', 'publish_cloud'})
+
+    @staticmethod
+    def check_parameters(p: dict) -> None:
         if p['max_segments'] < 1:
             raise ros.StartupError(f"parameter 'max_segments' must be >= 1, got {p['max_segments']}")
         for name in ('camera_timeout_s', 'result_timeout_s', 'state_timeout_s'):
@@ -64,23 +74,27 @@ class PlannerNode(ros.Node):
             raise ros.StartupError(f"parameter 'max_queued' must be >= 1, got {p['max_queued']}")
         if not 0.0 <= p['min_confidence'] < 1.0:
             raise ros.StartupError(f"parameter 'min_confidence' must be in [0, 1), got {p['min_confidence']}")
-        camera_size = None if tuple(p['camera_size']) == (0, 0) else tuple(p['camera_size'])
-        if camera_size is not None and (len(camera_size) != 2 or min(camera_size) < 8 or max(camera_size) > 4096):
+        camera_size = tuple(p['camera_size'])
+        if camera_size != (0, 0) and (len(camera_size) != 2 or min(camera_size) < 8 or max(camera_size) > 4096):
             raise ros.StartupError("parameter 'camera_size' must be [width, height] in 8..4096, or [0, 0], "
                                    f'got {list(camera_size)}')
+
+    def __init__(self):
+        super().__init__('planner_node')
+        p = self.declare_parameter_table()
+        camera_size = None if tuple(p['camera_size']) == (0, 0) else tuple(p['camera_size'])
         checkpoint = p['checkpoint'] or default_checkpoint()
         try:
             agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size,
                                                       ground_instructions=p['ground_instructions'])
         except ValueError as err:          # CheckpointError: missing, damaged or not ours
             raise ros.StartupError(f'cannot load the next-best-pose agent: {err}') from None
+        warm_up_s = agent.warm_up()        # the first instruction pays no first-call cost
         prefix = p['joint_prefix']
         observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
                                     panda.finger_joint_names(prefix))
         self.observations = observations           # the loop reads them; the subscriptions fill them
-        self.loop = PlannerLoop(agent, agent.vocabulary, p['max_segments'], p['camera_timeout_s'],
-                                p['result_timeout_s'], observations, p['min_confidence'], p['queue_policy'],
-                                p['max_queued'])
+        self.loop = PlannerLoop(agent, agent.vocabulary, observations=observations, **_limits(p))
 
         self.status = ros.Status(self)
         self._nbp = self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
@@ -89,8 +103,8 @@ class PlannerNode(ros.Node):
         # For RViz and Foxglove: the NBP as a TF frame and an arrow.
         self._tf = self.create_publisher(TFMessage, topics.TF, topics.TF_QOS)
         self._marker = self.create_publisher(Marker, topics.NEXT_BEST_POSE_MARKER, topics.COMMAND_QOS)
-        self._cloud = (self.create_publisher(PointCloud2, topics.PLANNER_CLOUD, topics.SENSOR_QOS)
-                       if p['publish_cloud'] else None)
+        self._cloud = None
+        self._publish_cloud(p['publish_cloud'])
         self.create_subscription(String, topics.INSTRUCTION,
                                  lambda m: self._send(self.loop.on_instruction(m.data, self._now())),
                                  topics.INSTRUCTION_QOS)
@@ -106,10 +120,25 @@ class PlannerNode(ros.Node):
         self.create_subscription(Header, topics.SEGMENT_RESULT,
                                  lambda m: self._send(self.loop.on_result(m, self._now())), topics.COMMAND_QOS)
         self.create_subscription(Bool, topics.SIM_SUCCESS, lambda m: self.loop.on_success(m.data), 10)
+        self._hold = self.create_publisher(Header, topics.HOLD, topics.COMMAND_QOS)
+        self.create_service(Trigger, topics.STOP, self._on_stop)
         self.create_timer(_STEP_S, self._step)
         # On the wall clock, in case this node runs on sim time and the simulator dies.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.status.info(f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction')
+        self.status.info(f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction '
+                         f'(warmed up in {warm_up_s:.2f} s)')
+
+    def apply_parameters(self, p: dict) -> None:
+        self.loop.configure(**_limits(p))
+        self.liveness.set_timeout(p['state_timeout_s'])
+        self._publish_cloud(p['publish_cloud'])
+
+    def _publish_cloud(self, on: bool) -> None:
+        if on and self._cloud is None:
+            self._cloud = self.create_publisher(PointCloud2, topics.PLANNER_CLOUD, topics.SENSOR_QOS)
+        elif not on and self._cloud is not None:
+            self.destroy_publisher(self._cloud)
+            self._cloud = None
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -127,6 +156,19 @@ class PlannerNode(ros.Node):
         problem = self.liveness.problem(time.monotonic(), self._now())
         if problem is not None:
             self._send(self.loop.robot_gone(problem, self._now()))
+
+    def _on_stop(self, request, response):
+        """/hdp/stop: hold the arm first (the urgent part), then end the instructions 'stopped'."""
+        why = f'stopped by {topics.STOP}'
+        now = self.get_clock().now()
+        self._hold.publish(Header(stamp=now.to_msg(), frame_id=why))
+        outputs = self.loop.stop(why, now.nanoseconds * 1e-9)
+        self._send(outputs)
+        stopped = [out.instruction for out in outputs if isinstance(out, Outcome)]
+        response.success = True
+        response.message = (f'stopped {", ".join(map(repr, stopped))}; arm held' if stopped
+                            else 'nothing was running; arm held')
+        return response
 
     def _step(self):
         started = time.monotonic()

@@ -17,13 +17,17 @@ class Liveness:
     """
 
     def __init__(self, timeout_s: float):
-        if not timeout_s > 0:
-            raise ValueError(f'a liveness timeout must be > 0 s, got {timeout_s}')
-        self.timeout_s = timeout_s
+        self.set_timeout(timeout_s)
         self.heard_s: float | None = None        # wall time of the last /joint_states
         self._clock: float | None = None         # the node's clock when last seen to change
         self._clock_moved_s: float | None = None
         self._checked_s: float | None = None     # wall time of the last stalled() call
+
+    def set_timeout(self, timeout_s: float) -> None:
+        """Change timeout_s; the next problem() and stalled() judge by it."""
+        if not timeout_s > 0:
+            raise ValueError(f'a liveness timeout must be > 0 s, got {timeout_s}')
+        self.timeout_s = timeout_s
 
     def heard(self, wall_s: float) -> None:
         """A /joint_states message arrived."""

@@ -29,7 +29,7 @@ from pathlib import Path
 import rclpy
 import rclpy.node
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.utilities import remove_ros_args
 
@@ -100,16 +100,54 @@ class Node(rclpy.node.Node):
 
     A node lists its parameters once, in PARAMETERS (name -> (default, description)):
     ``declare_parameter_table()`` declares them and returns their values, and
-    ``--help`` prints them.
+    ``--help`` prints them. The names in RUNTIME may change while the node runs; the
+    others are declared read-only, so rclpy refuses a change to them. A node's one
+    set of rules, ``check_parameters()``, judges the values at start (StartupError
+    ends the node) and every change at run time (refused with the rule's words); a
+    change it accepts reaches the node through ``apply_parameters()``.
     """
 
     PARAMETERS: dict = {}
+    RUNTIME: frozenset = frozenset()
 
     def declare_parameter_table(self) -> dict:
-        """Declare every entry of PARAMETERS (with its description); their values by name."""
+        """Declare every entry of PARAMETERS (with its description); their values by name, checked
+        by check_parameters()."""
         for name, (default, description) in self.PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=description))
+            self.declare_parameter(name, default, ParameterDescriptor(
+                description=description, read_only=name not in self.RUNTIME))
+        values = self.parameter_values()
+        self.check_parameters(values)
+        # Registered after the declarations, so that these judge changes at run time only.
+        self.add_on_set_parameters_callback(self._judge_parameters)
+        self.add_post_set_parameters_callback(self._changed_parameters)
+        return values
+
+    def parameter_values(self) -> dict:
+        """The values of PARAMETERS by name."""
         return {name: self.get_parameter(name).value for name in self.PARAMETERS}
+
+    def check_parameters(self, values: dict) -> None:
+        """Raise StartupError naming the first of ``values`` (all of PARAMETERS) the node cannot run with."""
+
+    def apply_parameters(self, values: dict) -> None:
+        """Hand ``values`` (all of PARAMETERS, some RUNTIME ones just changed) to the node's logic."""
+
+    def _judge_parameters(self, parameters) -> SetParametersResult:
+        # Parameters not in PARAMETERS (use_sim_time) are rclpy's to judge.
+        proposed = {p.name: p.value for p in parameters if p.name in self.PARAMETERS}
+        if proposed:
+            try:
+                self.check_parameters({**self.parameter_values(), **proposed})
+            except StartupError as err:
+                return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
+
+    def _changed_parameters(self, parameters) -> None:
+        changed = [p for p in parameters if p.name in self.RUNTIME]
+        if changed:
+            self.apply_parameters(self.parameter_values())
+            self.get_logger().info('applied ' + ', '.join(f'{p.name} := {p.value!r}' for p in changed))
 
     def _guard(self, what, callback):
         @functools.wraps(callback)
@@ -156,7 +194,8 @@ def usage(node_class, name: str) -> str:
     lines = [f'usage: {name} [--ros-args -p NAME:=VALUE ... --params-file FILE -r FROM:=TO ...]', '',
              summary, '', 'parameters:']
     for parameter, (default, description) in node_class.PARAMETERS.items():
-        lines.append(f'  {parameter} (default {default!r}): {description}')
+        runtime = ', changes at run time' if parameter in node_class.RUNTIME else ''
+        lines.append(f'  {parameter} (default {default!r}{runtime}): {description}')
     return '\n'.join(lines)
 
 

@@ -51,6 +51,16 @@ def gripper_goal_width(command) -> float:
     return 2 * command.position
 
 
+def _sensor_settings(p: dict) -> SensorSettings:
+    """The cameras' sensor model from the node's parameters, or StartupError."""
+    try:
+        d415 = {name[len('d415.'):]: value for name, value in p.items() if name.startswith('d415.')}
+        profile = profile_named(p['sensor_profile'], **(d415 if p['sensor_profile'] == 'd415' else {}))
+        return SensorSettings(profile, p['extrinsic_error_mm'], p['extrinsic_error_deg'], p['latency_ms'])
+    except ValueError as err:
+        raise ros.StartupError(f'bad sensor parameters: {err}') from None
+
+
 class SimBridgeNode(ros.Node):
     PARAMETERS = {
         'task': ('reach_target', 'the task of the first episode (later ones: /hdp/sim/reset)'),
@@ -72,24 +82,29 @@ class SimBridgeNode(ros.Node):
         'real_time_factor': (1.0, 'sim time per wall time; 0 runs as fast as possible'),
     }
 
-    def __init__(self):
-        super().__init__('sim_bridge_node')
-        p = self.declare_parameter_table()
+    # Rates, applied from the next tick; episodes change through /hdp/sim/reset.
+    RUNTIME = frozenset({'real_time_factor', 'camera_rate_hz', 'joint_state_rate_hz'})
+
+    @staticmethod
+    def check_parameters(p: dict) -> None:
         first = {'task': p['task'], 'seed': p['seed'], **({'variation': p['variation']} if p['variation'] >= 0 else {})}
         try:
             parse_reset(json.dumps(first))
         except ValueError as err:
             raise ros.StartupError(f'bad first episode: {err}') from None
-        self._rtf = p['real_time_factor']
-        self._joint_every = max(1, round(1.0 / (p['joint_state_rate_hz'] * TIME_STEP)))
-        self._camera_every = round(1.0 / (p['camera_rate_hz'] * TIME_STEP)) if p['camera_rate_hz'] > 0 else 0
+        for name in ('real_time_factor', 'camera_rate_hz'):
+            if not p[name] >= 0:
+                raise ros.StartupError(f'parameter {name!r} must be >= 0, got {p[name]}')
+        if not p['joint_state_rate_hz'] > 0:
+            raise ros.StartupError(f"parameter 'joint_state_rate_hz' must be > 0, got {p['joint_state_rate_hz']}")
+        _sensor_settings(p)
 
-        try:
-            d415 = {name[len('d415.'):]: value for name, value in p.items() if name.startswith('d415.')}
-            profile = profile_named(p['sensor_profile'], **(d415 if p['sensor_profile'] == 'd415' else {}))
-            sensor = SensorSettings(profile, p['extrinsic_error_mm'], p['extrinsic_error_deg'], p['latency_ms'])
-        except ValueError as err:
-            raise ros.StartupError(f'bad sensor parameters: {err}') from None
+    def __init__(self):
+        super().__init__('sim_bridge_node')
+        p = self.declare_parameter_table()
+        self._steps, self._wall_start = 0, time.monotonic()
+        self.apply_parameters(p)
+        sensor = _sensor_settings(p)
         self.bridge = SimBridge(p['camera_width'], p['camera_height'], sensor=sensor)
         self.status = ros.Status(self)
         if not sensor.is_ideal:
@@ -125,6 +140,13 @@ class SimBridgeNode(ros.Node):
         self._robot_description.publish(String(data=robot_description()))
         self.create_timer(0.005, self._tick)
         self.create_timer(0.5, lambda: self._success.publish(Bool(data=self.bridge.success())))
+
+    def apply_parameters(self, p: dict) -> None:
+        self._rtf = p['real_time_factor']
+        if self._rtf > 0:      # the wall time at which the steps taken so far were due at the new factor
+            self._wall_start = time.monotonic() - self._steps * TIME_STEP / self._rtf
+        self._joint_every = max(1, round(1.0 / (p['joint_state_rate_hz'] * TIME_STEP)))
+        self._camera_every = max(1, round(1.0 / (p['camera_rate_hz'] * TIME_STEP))) if p['camera_rate_hz'] > 0 else 0
 
     def _reset(self, task, seed, variation):
         episode = self.bridge.reset(task, seed, variation)

@@ -4,6 +4,9 @@
 - time_from_start strictly increasing; the first segment starts from where
   the arm is when the trajectory arrives.
 - a new trajectory replaces the one running.
+- one point at time_from_start 0 holds that position: JTC's own hold command (set_hold_position),
+  which a client sends to stop the arm on the topic interface. An empty trajectory (no points)
+  is refused, as JTC refuses it since ros2_controllers#902 (2024; Humble and Jazzy).
 - positions are interpolated linearly, or with cubic Hermite splines when
   every point carries velocities.
 
@@ -37,6 +40,8 @@ class ActiveTrajectory:
 
     def sample(self, now: float) -> np.ndarray:
         """Commanded joint positions (7,) at ``now``; holds the last point after the end."""
+        if len(self.times) == 1:                     # one point at time 0: hold it
+            return self.positions[0].copy()
         t = np.clip(now - self.start_time, 0.0, self.times[-1])
         i = int(np.clip(np.searchsorted(self.times, t, side='right') - 1, 0, len(self.times) - 2))
         t0, t1 = self.times[i], self.times[i + 1]
