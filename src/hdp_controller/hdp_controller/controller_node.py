@@ -7,16 +7,18 @@ callback: the executor is single-threaded, so messages wait in their readers mea
 while a segment is planned, so there is nothing to react to until the trajectory is out.
 A second timer runs on the steady clock: under use_sim_time the first one stops with the
 simulator, and the watchdog (hdp_ros.liveness) then fails the segment, naming the cause.
+/diagnostics (hdp_ros.diagnostics), also on the steady clock, says how the node stands.
 """
 
 
 import time
 
+import torch
 from rclpy.clock import Clock, ClockType
 
 from hdp_motion import panda
 from hdp_msgs_py import topics
-from hdp_ros import ros
+from hdp_ros import diagnostics, ros
 from hdp_ros.liveness import Liveness
 from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
 from hdp_msgs_py.outcome import StatusLine
@@ -32,6 +34,12 @@ _STEP_S = 0.05
 _WATCH_S = 0.5
 _CAMERA = 'front'              # RK-Diffuser sees the front camera only, as in training
 INTERFACES = ('topic', 'action')
+# Least rates /diagnostics expects: the 20 Hz step follows the arm on /joint_states (the sim sends
+# 120 Hz, a robot's broadcaster as much or more); the sim's cameras stream 2 Hz by default.
+_JOINT_STATE_HZ = 20.0
+_CAMERA_HZ = 2.0
+_STATE_HINT = 'is sim_bridge_node (or the robot driver) running?'
+_CAMERA_HINT = f'is sim_bridge_node (or the {_CAMERA} camera driver) running, and its camera selected?'
 
 
 def _segment_settings(p: dict) -> dict:
@@ -46,6 +54,8 @@ class ControllerNode(ros.Node):
         'method': ('rkd', f'low-level method: {" | ".join(METHODS)}'),
         'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser_11tasks.pt ($HDP_MODELS_DIR)"),
         'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
+        'cpu_threads': (1, "torch's CPU threads; 1 keeps this node from fighting the simulator and the other node "
+                           'for two cores (rkd planned in 0.5 s with torch\'s default 2, 0.08 s with 1)'),
         'device': ('cpu', 'where the diffusers sample: cpu | cuda | cuda:N | auto (refinement stays on the CPU)'),
         'segment_timeout_s': (10.0, 's after the trajectory ends for the arm to come to rest'),
         'unsettled': ('fail', "an arm not at rest segment_timeout_s after the trajectory's end: fail the segment, "
@@ -70,6 +80,8 @@ class ControllerNode(ros.Node):
 
     @staticmethod
     def check_parameters(p: dict) -> None:
+        if p['cpu_threads'] < 1:
+            raise ros.StartupError(f"parameter 'cpu_threads' must be >= 1, got {p['cpu_threads']}")
         if p['method'] not in METHODS:
             raise ros.StartupError(f"parameter 'method' must be one of {', '.join(METHODS)}, got {p['method']!r}")
         if not 0.0 < p['velocity_scale'] <= 1.0:
@@ -92,6 +104,7 @@ class ControllerNode(ros.Node):
             limits = panda.limits_for(p['robot_type'])
         except ValueError as err:
             raise ros.StartupError(f"parameter 'robot_type': {err}") from None
+        torch.set_num_threads(p['cpu_threads'])
         try:
             policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'], limits=limits,
                                  device=p['device'])
@@ -120,15 +133,20 @@ class ControllerNode(ros.Node):
         self.create_subscription(JointState, topics.NEXT_BEST_GRIPPER,
                                  lambda m: self._send(self.logic.on_gripper_goal(m)), topics.COMMAND_QOS)
         self.liveness = Liveness(p['state_timeout_s'])
+        self._joint_rate = diagnostics.RateMeter(time.monotonic())
+        self._depth_rate = diagnostics.RateMeter(time.monotonic()) if p['method'] in LEARNED else None
+        self._last_plan = None             # the last ArmCommand's PlanReport, for /diagnostics
+        self._model = {'method': p['method'], 'checkpoint': p['checkpoint'] or 'default',
+                       'device': str(policy.device) if p['method'] in LEARNED else 'cpu', 'warm_up_s': warm_up_s}
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
-        self.create_subscription(Image, topics.depth_image(_CAMERA),
-                                 self.logic.on_depth, topics.SENSOR_QOS)
+        self.create_subscription(Image, topics.depth_image(_CAMERA), self._on_depth, topics.SENSOR_QOS)
         self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
                                  self.logic.on_camera_info, topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.TF_STATIC_QOS)
         self.create_timer(_STEP_S, self._step)
         # On the wall clock: under use_sim_time the timer above stops with the simulator.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        diagnostics.advertise(self, self._diagnostics)
         sampler = f" ({p['sampler']} sampler)" if p['method'] in LEARNED else ''
         self.status.info(f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']} "
                          f'(warmed up in {warm_up_s:.2f} s)')
@@ -148,7 +166,31 @@ class ControllerNode(ros.Node):
 
     def _on_joint_state(self, msg):
         self.liveness.heard(time.monotonic())
+        self._joint_rate.tick(time.monotonic())
         self.logic.on_joint_state(msg)
+
+    def _on_depth(self, msg):
+        if self._depth_rate is not None:
+            self._depth_rate.tick(time.monotonic())
+        self.logic.on_depth(msg)
+
+    def _diagnostics(self, wall_s: float) -> list:
+        name, timeout_s = self.get_name(), self.liveness.timeout_s
+        out = [diagnostics.status(name, 'model', diagnostics.OK,
+                                  f"{self._model['method']} on {self._model['device']}", self._model),
+               diagnostics.topic_status(name, 'joint states', topics.JOINT_STATES, self._joint_rate, wall_s,
+                                        _JOINT_STATE_HZ, timeout_s, _STATE_HINT)]
+        if self._depth_rate is not None:
+            out.append(diagnostics.topic_status(name, f'{_CAMERA} depth', topics.depth_image(_CAMERA),
+                                                self._depth_rate, wall_s, _CAMERA_HZ, timeout_s, _CAMERA_HINT))
+        plan = self._last_plan
+        if plan is None:
+            out.append(diagnostics.status(name, 'last segment', diagnostics.OK, 'no segment planned yet'))
+        else:
+            out.append(diagnostics.status(name, 'last segment', diagnostics.OK,
+                                          f'planned in {plan.seconds:.2f} s, {plan.draws} draw(s)',
+                                          {'seconds': plan.seconds, 'draws': plan.draws, 'method': plan.method}))
+        return out + [diagnostics.liveness_status(name, self.liveness, wall_s, self._now())]
 
     def _watch(self):
         stalled = self.liveness.stalled(time.monotonic())
@@ -165,6 +207,8 @@ class ControllerNode(ros.Node):
 
     def _send(self, outputs):
         for out in outputs:
+            if isinstance(out, ArmCommand):
+                self._last_plan = out.plan
             match out:
                 case StatusLine():
                     self.status.line(out)

@@ -43,6 +43,7 @@ NBP_FRAME = 'world'                            # the only frame an NBP may be gi
 # 'stopped' and sends HOLD (std_msgs/Header, frame_id the reason) to controller_node, which holds the arm.
 STOP = '/hdp/stop'
 HOLD = '/hdp/hold'
+DIAGNOSTICS = '/diagnostics'    # diagnostic_msgs/DiagnosticArray, 1 Hz from every node (hdp_ros.diagnostics)
 
 
 def color_image(camera: str) -> str:
@@ -80,6 +81,7 @@ QOS_POLICIES = {
     # (robot_state_publisher, each camera driver, the calibration), and depth 1 would keep one.
     'TF_STATIC_QOS': QosPolicies(100, 'RELIABLE', 'TRANSIENT_LOCAL'),
     'TF_QOS': QosPolicies(100, 'RELIABLE', 'VOLATILE'),         # tf2's
+    'DIAGNOSTICS_QOS': QosPolicies(10, 'RELIABLE', 'VOLATILE'),  # diagnostic_updater's, a little deeper
 }
 
 

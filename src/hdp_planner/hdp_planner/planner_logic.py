@@ -225,6 +225,12 @@ class PlannerLoop:
         self.max_segments = max_segments
         self.camera_timeout_s, self.result_timeout_s = camera_timeout_s, result_timeout_s
 
+    def summary(self) -> dict:
+        """What runs, for the node's diagnostics: the instruction (None when idle), the segments
+        sent for it, of max_segments, and the instructions waiting."""
+        return {'instruction': self.instruction, 'segments': self.count, 'max_segments': self.max_segments,
+                'waiting': len(self.waiting)}
+
     # -- messages -------------------------------------------------------------------------
     def on_success(self, value: bool) -> None:
         self.success_heard, self.success = True, bool(value)

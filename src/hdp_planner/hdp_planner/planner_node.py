@@ -6,17 +6,19 @@ milliseconds on a CPU core). Timeouts run on the node's clock (the graph's YAML 
 node on wall time); a second timer on the steady clock fails the running instruction when
 /joint_states stop or the node's clock stands still (hdp_ros.liveness), so a dead simulator
 or robot driver is named within state_timeout_s instead of being blamed on the controller.
+/diagnostics (hdp_ros.diagnostics), also on the steady clock, says how the node stands.
 """
 
 import functools
 import time
 
+import torch
 from rclpy.clock import Clock, ClockType
 from std_srvs.srv import Trigger
 
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
-from hdp_ros import ros
+from hdp_ros import diagnostics, ros
 from hdp_ros.liveness import Liveness
 from hdp_msgs_py.msg import (Bool, CameraInfo, Header, Image, JointState, Marker, PointCloud2, PoseStamped, String,
                              TFMessage)
@@ -29,6 +31,11 @@ from .planner_logic import (DEFAULT_MAX_QUEUED, DEFAULT_MIN_CONFIDENCE, QUEUE_PO
 
 _STEP_S = 0.1
 _WATCH_S = 0.5
+# Least rates /diagnostics expects: the 10 Hz step reads /joint_states (the sim sends 120 Hz);
+# the sim's cameras stream 2 Hz by default.
+_JOINT_STATE_HZ = 10.0
+_CAMERA_HZ = 2.0
+_STATE_HINT = 'is sim_bridge_node (or the robot driver) running?'
 
 
 def _limits(p: dict) -> dict:
@@ -52,6 +59,8 @@ class PlannerNode(ros.Node):
         'state_timeout_s': (5.0, 'wall-clock s without /joint_states (or a moving clock) before an instruction fails'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
         'publish_cloud': (False, 'publish the cloud each prediction saw on /hdp/planner/cloud (for a viewer)'),
+        'cpu_threads': (1, "torch's CPU threads; 1 keeps this node from fighting the simulator and the other node "
+                           'for two cores (rkd planned in 0.5 s with torch\'s default 2, 0.08 s with 1)'),
         'camera_size': ([128, 96], 'the frame size [width, height] the agent was trained at (hdp collect --width '
                                    '--height); frames of another size are resampled to it; [0, 0] takes them as they come'),
     }
@@ -62,6 +71,8 @@ class PlannerNode(ros.Node):
 
     @staticmethod
     def check_parameters(p: dict) -> None:
+        if p['cpu_threads'] < 1:
+            raise ros.StartupError(f"parameter 'cpu_threads' must be >= 1, got {p['cpu_threads']}")
         if p['max_segments'] < 1:
             raise ros.StartupError(f"parameter 'max_segments' must be >= 1, got {p['max_segments']}")
         for name in ('camera_timeout_s', 'result_timeout_s', 'state_timeout_s'):
@@ -83,6 +94,7 @@ class PlannerNode(ros.Node):
         super().__init__('planner_node')
         p = self.declare_parameter_table()
         camera_size = None if tuple(p['camera_size']) == (0, 0) else tuple(p['camera_size'])
+        torch.set_num_threads(p['cpu_threads'])
         checkpoint = p['checkpoint'] or default_checkpoint()
         try:
             agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size,
@@ -95,6 +107,10 @@ class PlannerNode(ros.Node):
                                     panda.finger_joint_names(prefix))
         self.observations = observations           # the loop reads them; the subscriptions fill them
         self.loop = PlannerLoop(agent, agent.vocabulary, observations=observations, **_limits(p))
+        self._model = {'checkpoint': checkpoint, 'device': str(agent.device), 'warm_up_s': warm_up_s}
+        self._camera_timeout_s = p['camera_timeout_s']
+        self._joint_rate = diagnostics.RateMeter(time.monotonic())
+        self._camera_rates = {camera: diagnostics.RateMeter(time.monotonic()) for camera in topics.CAMERAS}
 
         self.status = ros.Status(self)
         self._nbp = self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
@@ -110,7 +126,7 @@ class PlannerNode(ros.Node):
                                  topics.INSTRUCTION_QOS)
         for camera in topics.CAMERAS:
             for msg_type, topic, callback in (
-                    (Image, topics.color_image(camera), observations.on_color),
+                    (Image, topics.color_image(camera), self._on_color),
                     (Image, topics.depth_image(camera), observations.on_depth),
                     (CameraInfo, topics.camera_info(camera), observations.on_info)):
                 self.create_subscription(msg_type, topic, functools.partial(callback, camera), topics.SENSOR_QOS)
@@ -125,12 +141,14 @@ class PlannerNode(ros.Node):
         self.create_timer(_STEP_S, self._step)
         # On the wall clock, in case this node runs on sim time and the simulator dies.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        diagnostics.advertise(self, self._diagnostics)
         self.status.info(f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction '
                          f'(warmed up in {warm_up_s:.2f} s)')
 
     def apply_parameters(self, p: dict) -> None:
         self.loop.configure(**_limits(p))
         self.liveness.set_timeout(p['state_timeout_s'])
+        self._camera_timeout_s = p['camera_timeout_s']
         self._publish_cloud(p['publish_cloud'])
 
     def _publish_cloud(self, on: bool) -> None:
@@ -145,7 +163,32 @@ class PlannerNode(ros.Node):
 
     def _on_joint_state(self, msg):
         self.liveness.heard(time.monotonic())
+        self._joint_rate.tick(time.monotonic())
         self.observations.on_joint_state(msg)
+
+    def _on_color(self, camera, msg):
+        self._camera_rates[camera].tick(time.monotonic())
+        self.observations.on_color(camera, msg)
+
+    def _diagnostics(self, wall_s: float) -> list:
+        name = self.get_name()
+        out = [diagnostics.status(name, 'agent', diagnostics.OK,
+                                  f"{self._model['checkpoint']} on {self._model['device']}", self._model),
+               diagnostics.topic_status(name, 'joint states', topics.JOINT_STATES, self._joint_rate, wall_s,
+                                        _JOINT_STATE_HZ, self.liveness.timeout_s, _STATE_HINT)]
+        out += [diagnostics.topic_status(name, f'{camera} camera', topics.color_image(camera), meter, wall_s,
+                                         _CAMERA_HZ, self._camera_timeout_s,
+                                         f'is sim_bridge_node (or the {camera} camera driver) running, and '
+                                         'its camera selected?')
+                for camera, meter in self._camera_rates.items()]
+        running = self.loop.summary()
+        message = ('idle' if running['instruction'] is None else
+                   f"{running['instruction']!r}: {running['segments']} of at most {running['max_segments']} "
+                   'segments sent')
+        out.append(diagnostics.status(name, 'instruction', diagnostics.OK,
+                                      message + (f", {running['waiting']} waiting" if running['waiting'] else ''),
+                                      running))
+        return out + [diagnostics.liveness_status(name, self.liveness, wall_s, self._now())]
 
     def _watch(self):
         stalled = self.liveness.stalled(time.monotonic())

@@ -1,7 +1,8 @@
 """sim_bridge_node: a simulated Panda and two D415 cameras, with the topics of the real ones.
 
 It is the graph's clock: it publishes /clock from simulation time and keeps
-its own timers on the wall clock, stepping physics at ``real_time_factor``.
+its own timers on the wall clock, stepping physics at ``real_time_factor``. /diagnostics
+(hdp_ros.diagnostics) says whether it keeps up: the real-time factor achieved, the cameras' rates.
 """
 
 import dataclasses
@@ -17,7 +18,7 @@ from rclpy.task import Future
 
 from hdp_motion import panda
 from hdp_msgs_py import topics
-from hdp_ros import ros
+from hdp_ros import diagnostics, ros
 from hdp_msgs_py.conversions import duration_to_seconds
 from hdp_msgs_py.msg import Bool, CameraInfo, Clock, Image, JointState, JointTrajectory, String, TFMessage
 
@@ -34,6 +35,9 @@ DEFAULT_GOAL_TIME_TOLERANCE = 1.0
 GRIPPER_SETTLE_S = 3.0                 # franka_gripper's moves end within this (sim time)
 GRIPPER_STILL_S = 0.2                  # fingers unmoved this long have stopped (on the target or an object)
 GRIPPER_REACHED = 0.005                # m of width: franka_gripper's grasp epsilon
+SLOW_RTF = 0.8                         # /diagnostics warns below this fraction of the factor asked
+CAMERA_TIMEOUT_S = 5.0                 # planner_node's camera_timeout_s: silent longer, its work fails
+_TOO_SLOW = 'lower camera_width/camera_height, camera_rate_hz or real_time_factor'
 
 
 def gripper_goal_width(command) -> float:
@@ -103,6 +107,7 @@ class SimBridgeNode(ros.Node):
         super().__init__('sim_bridge_node')
         p = self.declare_parameter_table()
         self._steps, self._wall_start = 0, time.monotonic()
+        self._stepped, self._rtf_since = 0, (time.monotonic(), 0)     # steps ever, for the factor achieved
         self.apply_parameters(p)
         sensor = _sensor_settings(p)
         self.bridge = SimBridge(p['camera_width'], p['camera_height'], sensor=sensor)
@@ -121,6 +126,7 @@ class SimBridgeNode(ros.Node):
                                 self.create_publisher(Image, topics.depth_image(name), topics.SENSOR_QOS),
                                 self.create_publisher(CameraInfo, topics.camera_info(name), topics.SENSOR_QOS))
                          for name in self.bridge.cameras}
+        self._camera_rates = {name: diagnostics.RateMeter(time.monotonic()) for name in self.bridge.cameras}
         self.create_subscription(JointTrajectory, topics.ARM_TRAJECTORY, self._on_arm, 10)
         self.create_subscription(JointTrajectory, topics.GRIPPER_TRAJECTORY, self._on_gripper, 10)
         self.create_subscription(String, topics.SIM_RESET, self._on_reset, 10)
@@ -140,12 +146,14 @@ class SimBridgeNode(ros.Node):
         self._robot_description.publish(String(data=robot_description()))
         self.create_timer(0.005, self._tick)
         self.create_timer(0.5, lambda: self._success.publish(Bool(data=self.bridge.success())))
+        diagnostics.advertise(self, self._diagnostics)
 
     def apply_parameters(self, p: dict) -> None:
         self._rtf = p['real_time_factor']
         if self._rtf > 0:      # the wall time at which the steps taken so far were due at the new factor
             self._wall_start = time.monotonic() - self._steps * TIME_STEP / self._rtf
         self._joint_every = max(1, round(1.0 / (p['joint_state_rate_hz'] * TIME_STEP)))
+        self._camera_hz = p['camera_rate_hz']
         self._camera_every = max(1, round(1.0 / (p['camera_rate_hz'] * TIME_STEP))) if p['camera_rate_hz'] > 0 else 0
 
     def _reset(self, task, seed, variation):
@@ -283,6 +291,7 @@ class SimBridgeNode(ros.Node):
         for _ in range(max(0, due)):
             self.bridge.step()
             self._steps += 1
+            self._stepped += 1
             if self._steps % self._joint_every == 0:
                 self._clock_pub.publish(self.bridge.clock())
                 self._joints.publish(self.bridge.joint_state())
@@ -290,8 +299,39 @@ class SimBridgeNode(ros.Node):
             if self._camera_every and self._steps % self._camera_every == 0:
                 self.bridge.expose()
             for name, messages in self.bridge.delivered():
+                self._camera_rates[name].tick(time.monotonic())
                 for publisher, message in zip(self._cameras[name], messages):
                     publisher.publish(message)
+
+    def _diagnostics(self, wall_s: float) -> list:
+        name = self.get_name()
+        since_s, since_steps = self._rtf_since
+        self._rtf_since = (wall_s, self._stepped)
+        achieved = (self._stepped - since_steps) * TIME_STEP / (wall_s - since_s)
+        if self._rtf > 0 and achieved < SLOW_RTF * self._rtf:
+            level, message = diagnostics.WARN, (f'real-time factor {achieved:.2f}, asked {self._rtf:g}: '
+                                                f'this machine cannot keep up; {_TOO_SLOW}')
+        else:
+            asked = f'asked {self._rtf:g}' if self._rtf > 0 else 'asked as fast as possible'
+            level, message = diagnostics.OK, f'real-time factor {achieved:.2f}, {asked}'
+        out = [diagnostics.status(name, 'real-time factor', level, message,
+                                  {'achieved': achieved, 'asked': self._rtf, 'sim_time_s': self.bridge.sim_time})]
+        for camera, meter in self._camera_rates.items():
+            expected_hz = self._camera_hz * achieved      # frames per wall second at the speed the sim runs
+            if camera not in self.bridge.publishing or expected_hz <= 0:
+                why = ('stopped on /hdp/sim/cameras' if camera not in self.bridge.publishing
+                       else 'off (camera_rate_hz 0)' if self._camera_hz == 0 else 'the simulation is not running')
+                out.append(diagnostics.status(name, f'{camera} camera', diagnostics.OK, why,
+                                              {'camera_rate_hz': self._camera_hz}))
+                continue
+            out.append(diagnostics.topic_status(
+                name, f'{camera} camera', topics.color_image(camera), meter, wall_s, expected_hz,
+                max(CAMERA_TIMEOUT_S, 2 * diagnostics.STALE_PERIODS / expected_hz), f'rendering is slow; {_TOO_SLOW}'))
+        episode = self.bridge.episode
+        out.append(diagnostics.status(name, 'episode', diagnostics.OK,
+                                      f"{episode['task']} seed {episode['seed']} variation {episode['variation']}: "
+                                      f"{episode['instruction']!r}", episode))
+        return out
 
     def destroy_node(self):
         self.bridge.close()
