@@ -268,12 +268,12 @@ def test_in_the_closed_loop_frames_reach_the_planner_and_controller_the_latency_
         graph = InProcessGraph(bridge, Agent(), Stay(), needs_points=False, settings=settings)
         arrivals = []
 
-        def on_depth(camera, msg, planner_on_depth=graph.planner.observations.on_depth):
+        def on_depth(camera, msg, planner_on_depth=graph.observations.on_depth):
             arrivals.append((camera, conversions.time_to_seconds(msg.header.stamp), graph.now_s))
             planner_on_depth(camera, msg)
             if len(arrivals) == 6:
                 raise Seen
-        graph.planner.observations.on_depth = on_depth
+        graph.observations.on_depth = on_depth
         controller_frames = []
         graph.controller.on_depth = lambda msg: controller_frames.append(graph.now_s)
         with pytest.raises(Seen):

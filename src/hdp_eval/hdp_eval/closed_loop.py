@@ -21,7 +21,7 @@ from hdp_controller.segment_controller import ArmCommand, FingerCommand, Segment
 from hdp_controller.segment_planning import PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, PlanReport
 from hdp_controller.trajectory import VELOCITY_SCALE
 from hdp_msgs_py.outcome import Outcome, StatusLine
-from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, PlannerLoop, Prediction, SegmentGoal
+from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, Observations, PlannerLoop, Prediction, SegmentGoal
 from hdp_sim_bridge.bridge import SimBridge
 from hdp_sim_bridge.sensor_model import SensorSettings
 from hdp_sim_bridge.world import TIME_STEP
@@ -80,8 +80,9 @@ class InProcessGraph:
     def __init__(self, bridge: SimBridge, agent, policy, needs_points: bool, settings: GraphSettings,
                  scene=None):
         self.bridge, self.settings = bridge, settings
+        self.observations = Observations()        # as planner_node: it fills them, the loop reads them
         self.planner = PlannerLoop(agent, agent.vocabulary, settings.max_segments, settings.camera_timeout_s,
-                                   settings.result_timeout_s, min_confidence=settings.min_confidence)
+                                   settings.result_timeout_s, self.observations, settings.min_confidence)
         self.controller = SegmentController(
             policy, needs_points=needs_points, velocity_scale=settings.velocity_scale,
             segment_timeout_s=settings.segment_timeout_s, reach_tolerance=settings.reach_tolerance,
@@ -90,7 +91,7 @@ class InProcessGraph:
         self._held_back: list[tuple[float, ArmCommand]] = []      # trajectories due after think_s
         self._steps = 0
         tf_static = bridge.tf_static()
-        self.planner.observations.on_tf_static(tf_static)
+        self.observations.on_tf_static(tf_static)
         self.controller.on_tf_static(tf_static)
         self._publish_joint_state()
 
@@ -131,15 +132,15 @@ class InProcessGraph:
     # -- the bridge's publications ---------------------------------------------------------
     def _publish_joint_state(self) -> None:
         msg = self.bridge.joint_state()
-        self.planner.observations.on_joint_state(msg)
+        self.observations.on_joint_state(msg)
         self.controller.on_joint_state(msg)
 
     def _deliver_frames(self) -> None:
         """The frames the bridge exposed that are due now (at once, or the sensor's latency later)."""
         for name, (color, depth, info) in self.bridge.delivered():
-            self.planner.observations.on_color(name, color)
-            self.planner.observations.on_depth(name, depth)
-            self.planner.observations.on_info(name, info)
+            self.observations.on_color(name, color)
+            self.observations.on_depth(name, depth)
+            self.observations.on_info(name, info)
             if name == CONTROLLER_CAMERA:
                 self.controller.on_depth(depth)
                 self.controller.on_camera_info(info)
