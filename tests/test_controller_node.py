@@ -854,7 +854,7 @@ def test_a_controller_that_was_stopped_says_so_instead_of_blaming_the_robot(ros_
         if echo is not None:
             echo.terminate()
     lines = echo.communicate(timeout=10)[0]
-    assert 'controller_node itself did not run for' in lines, lines + controller_err
+    assert 'controller_node: this node itself did not run for' in lines, lines + controller_err
     assert 'no /joint_states' not in lines + controller_err
 
 

@@ -167,7 +167,7 @@ def test_a_node_that_did_not_run_blames_itself_not_the_robot():
     live.heard(0.0)
     for t in (0.5, 1.0):
         assert live.stalled(t) is None and live.problem(t, t) is None
-    assert live.stalled(21.0) == pytest.approx(20.0)               # stopped from 1.0 to 21.0
+    assert live.stalled(21.0).startswith('this node itself did not run for 20.0 s')   # stopped 1.0-21.0
     assert live.problem(21.0, 21.0) is None                         # not 'no /joint_states for 21 s'
     assert live.stalled(21.5) is None and live.problem(21.5, 21.5) is None
     for t in (22.0, 22.5, 23.0, 23.5, 24.0, 24.5, 25.0, 25.5, 26.0, 26.5):    # the watchdog runs again ...

@@ -259,7 +259,7 @@ def test_in_the_closed_loop_frames_reach_the_planner_and_controller_the_latency_
             return PlanResult(np.repeat(np.asarray(request.q, dtype=float)[None], 4, axis=0))
 
     class Seen(Exception):
-        pass
+        """Six frames have arrived: enough to judge when they were stamped and delivered."""
 
     settings = GraphSettings(camera_hz=15.0, reach_tolerance=None, sensor=SensorSettings(D415, latency_ms=100.0))
     with PandaWorld() as world:

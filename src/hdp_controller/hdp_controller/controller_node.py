@@ -19,7 +19,7 @@ from rclpy.clock import Clock, ClockType
 from hdp_motion import panda
 from hdp_msgs_py import topics
 from hdp_ros import diagnostics, ros
-from hdp_ros.liveness import Liveness
+from hdp_ros.liveness import ROBOT_HINT, Liveness
 from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
 from hdp_msgs_py.outcome import StatusLine
 
@@ -38,7 +38,6 @@ INTERFACES = ('topic', 'action')
 # 120 Hz, a robot's broadcaster as much or more); the sim's cameras stream 2 Hz by default.
 _JOINT_STATE_HZ = 20.0
 _CAMERA_HZ = 2.0
-_STATE_HINT = 'is sim_bridge_node (or the robot driver) running?'
 _CAMERA_HINT = f'is sim_bridge_node (or the {_CAMERA} camera driver) running, and its camera selected?'
 
 
@@ -179,7 +178,7 @@ class ControllerNode(ros.Node):
         out = [diagnostics.status(name, 'model', diagnostics.OK,
                                   f"{self._model['method']} on {self._model['device']}", self._model),
                diagnostics.topic_status(name, 'joint states', topics.JOINT_STATES, self._joint_rate, wall_s,
-                                        _JOINT_STATE_HZ, timeout_s, _STATE_HINT)]
+                                        _JOINT_STATE_HZ, timeout_s, ROBOT_HINT)]
         if self._depth_rate is not None:
             out.append(diagnostics.topic_status(name, f'{_CAMERA} depth', topics.depth_image(_CAMERA),
                                                 self._depth_rate, wall_s, _CAMERA_HZ, timeout_s, _CAMERA_HINT))
@@ -194,9 +193,8 @@ class ControllerNode(ros.Node):
 
     def _watch(self):
         stalled = self.liveness.stalled(time.monotonic())
-        if stalled is not None:      # this process was stopped or starved: not the robot's fault
-            self.status.error(f'{self.get_name()} itself did not run for {stalled:.1f} s (stopped or starved of '
-                              'CPU); not blaming the robot for that silence')
+        if stalled is not None:
+            self.status.error(stalled)
             return
         problem = self.liveness.problem(time.monotonic(), self._now())
         if problem is not None:
@@ -207,15 +205,15 @@ class ControllerNode(ros.Node):
 
     def _send(self, outputs):
         for out in outputs:
-            if isinstance(out, ArmCommand):
-                self._last_plan = out.plan
             match out:
                 case StatusLine():
                     self.status.line(out)
-                case ArmCommand() if self.arm_action is not None:
-                    self.arm_action.send(out.stamp, out.trajectory)
                 case ArmCommand():
-                    self._arm.publish(out.trajectory)
+                    self._last_plan = out.plan
+                    if self.arm_action is not None:
+                        self.arm_action.send(out.stamp, out.trajectory)
+                    else:
+                        self._arm.publish(out.trajectory)
                 case HoldArm() if self.arm_action is not None:
                     self.arm_action.cancel()
                 case HoldArm() if out.trajectory is not None:

@@ -19,7 +19,7 @@ from std_srvs.srv import Trigger
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
 from hdp_ros import diagnostics, ros
-from hdp_ros.liveness import Liveness
+from hdp_ros.liveness import ROBOT_HINT, Liveness
 from hdp_msgs_py.msg import (Bool, CameraInfo, Header, Image, JointState, Marker, PointCloud2, PoseStamped, String,
                              TFMessage)
 from hdp_msgs_py.outcome import Outcome, StatusLine
@@ -35,7 +35,6 @@ _WATCH_S = 0.5
 # the sim's cameras stream 2 Hz by default.
 _JOINT_STATE_HZ = 10.0
 _CAMERA_HZ = 2.0
-_STATE_HINT = 'is sim_bridge_node (or the robot driver) running?'
 
 
 def _limits(p: dict) -> dict:
@@ -175,7 +174,7 @@ class PlannerNode(ros.Node):
         out = [diagnostics.status(name, 'agent', diagnostics.OK,
                                   f"{self._model['checkpoint']} on {self._model['device']}", self._model),
                diagnostics.topic_status(name, 'joint states', topics.JOINT_STATES, self._joint_rate, wall_s,
-                                        _JOINT_STATE_HZ, self.liveness.timeout_s, _STATE_HINT)]
+                                        _JOINT_STATE_HZ, self.liveness.timeout_s, ROBOT_HINT)]
         out += [diagnostics.topic_status(name, f'{camera} camera', topics.color_image(camera), meter, wall_s,
                                          _CAMERA_HZ, self._camera_timeout_s,
                                          f'is sim_bridge_node (or the {camera} camera driver) running, and '
@@ -192,9 +191,8 @@ class PlannerNode(ros.Node):
 
     def _watch(self):
         stalled = self.liveness.stalled(time.monotonic())
-        if stalled is not None:      # this process was stopped or starved: not the robot's fault
-            self.status.error(f'{self.get_name()} itself did not run for {stalled:.1f} s (stopped or starved of '
-                              'CPU); not blaming the robot for that silence')
+        if stalled is not None:
+            self.status.error(stalled)
             return
         problem = self.liveness.problem(time.monotonic(), self._now())
         if problem is not None:

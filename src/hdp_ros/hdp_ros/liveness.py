@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from hdp_msgs_py import topics
 
+ROBOT_HINT = 'is sim_bridge_node (or the robot driver) running?'   # what to check when it is silent
+
 
 class Liveness:
     """Last /joint_states arrival and last clock movement, both in wall-clock seconds.
@@ -41,17 +43,18 @@ class Liveness:
         if self._clock_moved_s is not None:
             self._clock_moved_s = max(self._clock_moved_s, wall_s)
 
-    def stalled(self, wall_s: float) -> float | None:
-        """Seconds this node itself did not run since the last call, when longer than timeout_s (it
-        was stopped, or starved of CPU), else None. The silence meanwhile is the node's own, not the
-        robot's: it is excused, and messages queued meanwhile arrive next. Call it from the same
-        periodic timer as problem(), first."""
+    def stalled(self, wall_s: float) -> str | None:
+        """Why the node itself was silent, when it did not run for longer than timeout_s since the
+        last call (it was stopped, or starved of CPU), else None. That silence is the node's own,
+        not the robot's: it is excused, and messages queued meanwhile arrive next. Call it from the
+        same periodic timer as problem(), first."""
         gap = None if self._checked_s is None else wall_s - self._checked_s
         self._checked_s = wall_s
         if gap is None or gap <= self.timeout_s:
             return None
         self.excuse(wall_s)
-        return gap
+        return (f'this node itself did not run for {gap:.1f} s (stopped or starved of CPU); '
+                'not blaming the robot for that silence')
 
     def problem(self, wall_s: float, clock_s: float) -> str | None:
         """Why the robot looks gone (for the node's status and results), or None.
@@ -62,8 +65,7 @@ class Liveness:
         if clock_s != self._clock or self._clock_moved_s is None:
             self._clock, self._clock_moved_s = clock_s, wall_s
         if self.heard_s is not None and wall_s - self.heard_s > self.timeout_s:
-            return (f'no {topics.JOINT_STATES} for {wall_s - self.heard_s:.1f} s (wall clock): '
-                    'is sim_bridge_node (or the robot driver) running?')
+            return f'no {topics.JOINT_STATES} for {wall_s - self.heard_s:.1f} s (wall clock): ' + ROBOT_HINT
         if wall_s - self._clock_moved_s > self.timeout_s:
             return (f'the node\'s clock has not moved for {wall_s - self._clock_moved_s:.1f} s (wall clock): '
                     f'under use_sim_time, is {topics.CLOCK} published?')
