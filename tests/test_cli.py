@@ -224,7 +224,7 @@ def test_ros_discovery_info_decodes_with_rosbags(ros_domain):
 
 def test_planner_node_executable_acknowledges_an_instruction(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain))
-    node = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+    node = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args', '-p', 'autostart:=true',
                              '-p', 'use_sim_time:=false'], env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     # /hdp/status keeps its history (transient local): the acknowledgement follows 'ready'

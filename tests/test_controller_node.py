@@ -629,6 +629,7 @@ def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, inter
                                '-p', 'task:=reach_target', '-p', 'seed:=3'],
                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'autostart:=true',
                                    '-p', 'method:=planner', '-p', 'use_sim_time:=true',
                                    '-p', f'arm_interface:={interface}', '-p', f'gripper_interface:={interface}'],
                                   env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -832,6 +833,7 @@ def test_a_controller_that_was_stopped_says_so_instead_of_blaming_the_robot(ros_
                                '-p', 'camera_rate_hz:=0.0'], env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)
     controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'autostart:=true',
                                    '-p', 'method:=planner', '-p', 'state_timeout_s:=2.0'], env=env,
                                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     echo = None

@@ -122,6 +122,7 @@ def test_the_nodes_diagnostics_are_ok_and_name_a_stopped_bridge(ros_domain):
                                '-p', 'camera_rate_hz:=0.0'], env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)
     controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'autostart:=true',
                                    '-p', 'method:=planner', '-p', 'state_timeout_s:=2.0'], env=env,
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     reader = subprocess.Popen([sys.executable, __file__, 'read', '90'], env=env, stdout=subprocess.PIPE,

@@ -38,7 +38,9 @@ pytestmark = [pytest.mark.dds, pytest.mark.timeout(900)]
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / 'src' / 'hdp_bringup' / 'config' / 'hdp_graph.yaml'
-PACKAGES = {'sim_bridge_node': 'hdp_sim_bridge', 'planner_node': 'hdp_planner', 'controller_node': 'hdp_controller'}
+# As `hdp launch` starts them: the lifecycle manager brings the two managed nodes to active.
+PACKAGES = {'sim_bridge_node': 'hdp_sim_bridge', 'planner_node': 'hdp_planner', 'controller_node': 'hdp_controller',
+            'lifecycle_manager': 'hdp_bringup'}
 # Twice the longest healthy segment measured here (10.4 s: RK-Diffuser planning, motion and
 # settling on a loaded 2-core machine), so only a dead controller runs into it.
 RESULT_TIMEOUT_S = 20.0
@@ -46,6 +48,7 @@ OVERRIDES = {
     'sim_bridge_node': (f'camera_width:={CAMERA_SIZE[0]}', f'camera_height:={CAMERA_SIZE[1]}', 'camera_rate_hz:=4.0'),
     'planner_node': (f'result_timeout_s:={RESULT_TIMEOUT_S}',),
     'controller_node': (),
+    'lifecycle_manager': ('node_names:=[controller_node,planner_node]',),
 }
 START_TIMEOUT_S = 240.0          # three processes importing torch on a busy 2-core machine
 EPISODE_TIMEOUT_S = 300.0        # 8 segments of plan + motion, with room for a slow machine

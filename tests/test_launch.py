@@ -51,12 +51,16 @@ def test_the_launch_file_declares_its_arguments_and_passes_them_on(monkeypatch, 
     nodes, declared = _launch_file_nodes(monkeypatch, tmp_path, {})
     assert set(declared) == {'task', 'seed', 'method', 'params_file'}
     assert declared['params_file'] == str(tmp_path / 'config' / 'hdp_graph.yaml')
-    assert [n.kwargs['name'] for n in nodes] == list(NODES)
-    assert all(n.kwargs['parameters'] == [declared['params_file'], {}] for n in nodes)    # the YAML alone
+    assert [n.kwargs['name'] for n in nodes] == [*NODES, 'lifecycle_manager']
+    graph_nodes, manager = nodes[:-1], nodes[-1]
+    assert all(n.kwargs['parameters'] == [declared['params_file'], {}] for n in graph_nodes)    # the YAML alone
+    # The managed nodes go up controller first: it is active before the planner sends it work.
+    assert manager.kwargs['parameters'] == [declared['params_file'], {'node_names': ['controller_node',
+                                                                                    'planner_node']}]
 
     nodes, _ = _launch_file_nodes(monkeypatch, tmp_path, {'task': 'open_oven', 'seed': '7', 'method': 'planner',
                                                          'params_file': '/robot/params.yaml'})
-    parameters = {n.kwargs['name']: n.kwargs['parameters'] for n in nodes}
+    parameters = {n.kwargs['name']: n.kwargs['parameters'] for n in nodes if n.kwargs['name'] in NODES}
     assert parameters == {'sim_bridge_node': ['/robot/params.yaml', {'task': 'open_oven', 'seed': 7}],
                           'planner_node': ['/robot/params.yaml', {}],
                           'controller_node': ['/robot/params.yaml', {'method': 'planner'}]}

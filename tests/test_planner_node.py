@@ -478,6 +478,7 @@ def _status_listener(env, expect: int, seconds: float, *publish) -> subprocess.P
 def test_planner_node_refuses_bad_instructions_and_reports_a_camera_timeout(ros_domain, tiny_checkpoint):
     env = _env(ros_domain)
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', 'autostart:=true',
                                 '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'camera_timeout_s:=2.0'],
                                env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
@@ -514,6 +515,7 @@ def test_a_burst_of_fifty_instructions_gets_fifty_outcomes(ros_domain, tiny_chec
     burst takes on a loaded machine: at most 11 + its seconds / 2.5)."""
     env = _env(ros_domain)
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', 'autostart:=true',
                                 '-p', f'checkpoint:={tiny_checkpoint}', '-p', f'camera_timeout_s:={camera_timeout_s}',
                                 '-p', f'queue_policy:={policy}', '-p', 'max_queued:=10'],
                                env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -544,6 +546,7 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
                                '-p', 'task:=open_drawer', '-p', 'seed:=1'],
                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', 'autostart:=true',
                                 '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'max_segments:=2',
                                 '-p', 'camera_timeout_s:=20.0', '-p', 'publish_cloud:=true',
                                 '-p', 'min_confidence:=0.0'],     # untrained: its confidence means nothing
@@ -584,9 +587,11 @@ def test_hdp_stop_ends_the_instruction_stopped_and_holds_the_moving_arm(ros_doma
                                '-p', 'task:=reach_target', '-p', 'seed:=3'],
                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'autostart:=true',
                                    '-p', 'method:=planner', '-p', 'use_sim_time:=true', '-p', 'velocity_scale:=0.03'],
                                   env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', 'autostart:=true',
                                 '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'camera_timeout_s:=120.0'],
                                env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:

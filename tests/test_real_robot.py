@@ -50,6 +50,9 @@ def test_franka_ros2_is_included_with_the_fr3_and_our_controllers(monkeypatch, t
                                                 '/hdp_arm_controller/joint_trajectory')]
     assert controller.kwargs['parameters'][1] == {'joint_prefix': 'fr3', 'robot_type': 'fr3'}
     panda.limits_for(controller.kwargs['parameters'][1]['robot_type'])
+    manager, = [n for n in nodes if n.kwargs.get('executable') == 'lifecycle_manager']
+    assert manager.kwargs['parameters'][1] == {'node_names': ['controller_node', 'planner_node']}
+    assert 'lifecycle_manager' in yaml.safe_load((BRINGUP / 'config' / 'hdp_real_fr3.yaml').read_text())
 
 
 def test_the_arm_is_mounted_on_base_never_on_link0_and_cameras_named_as_the_nodes_expect(monkeypatch, tmp_path):

@@ -103,6 +103,7 @@ def test_planner_node_applies_runtime_changes_and_refuses_the_probes_values(ros_
     checkpoint = tiny_checkpoint
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
     planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', 'autostart:=true',
                                 '-p', f'checkpoint:={checkpoint}', '-p', 'camera_timeout_s:=30.0'],
                                env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
@@ -136,6 +137,7 @@ def test_planner_node_applies_runtime_changes_and_refuses_the_probes_values(ros_
 def test_controller_node_applies_runtime_changes_and_refuses_the_probes_values(ros_domain):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
     controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'autostart:=true',
                                    '-p', 'method:=planner'],
                                   env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:

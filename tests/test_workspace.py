@@ -146,7 +146,7 @@ def test_real_robot_parameters_are_ones_the_nodes_declare():
     import yaml
     graph = yaml.safe_load((SRC / 'hdp_bringup' / 'config' / 'hdp_graph.yaml').read_text())
     real = yaml.safe_load((SRC / 'hdp_bringup' / 'config' / 'hdp_real_fr3.yaml').read_text())
-    assert set(real) == {'planner_node', 'controller_node'}
+    assert set(real) == {'planner_node', 'controller_node', 'lifecycle_manager'}
     for node, section in real.items():
         unknown = set(section['ros__parameters']) - set(graph[node]['ros__parameters'])
         assert not unknown, (node, unknown)

@@ -38,6 +38,9 @@ setup(
     description='Launch files, parameters, hdp launch and hdp demo for the HDP graph',
     license='Apache-2.0',
     entry_points={
+        'console_scripts': [
+            'lifecycle_manager = hdp_bringup.lifecycle_manager:main',
+        ],
         'hdp.commands': [
             'launch = hdp_bringup.launch_cli:configure',
             'demo = hdp_bringup.demo.cli:configure',

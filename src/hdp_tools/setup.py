@@ -27,6 +27,7 @@ setup(
         'hdp.commands': [
             'topic = hdp_tools.cli.topic:configure',
             'node = hdp_tools.cli.node:configure',
+            'lifecycle = hdp_tools.cli.lifecycle:configure',
             'bench.transport = hdp_tools.cli.bench_transport:configure',
         ],
     },

@@ -1,7 +1,9 @@
 """`hdp launch`: the HDP graph as processes, what `ros2 launch hdp_bringup hdp_graph.launch.py` does.
 
 sim_bridge_node, planner_node and controller_node each run in a process of their own with
-their section of config/hdp_graph.yaml. Output lines are prefixed with the node's name;
+their section of config/hdp_graph.yaml; planner_node and controller_node are managed nodes,
+and a lifecycle_manager process (lifecycle_manager.py) brings those started to active,
+controller first. Output lines are prefixed with the node's name;
 SIGINT/SIGTERM go on to every node. What happens when a node exits is ros2 launch's choice,
 per node: by default the others keep running (the command ends when every node has exited);
 `--exit-on-node-exit` stops the graph (ros2 launch's on_exit=Shutdown()); `--respawn NODES`
@@ -24,6 +26,9 @@ from hdp_controller.methods import METHODS   # controller_node's low levels (imp
 
 # node name -> package; the executable is the node's name (hdp_graph.launch.py reads this too).
 NODES = {'sim_bridge_node': 'hdp_sim_bridge', 'planner_node': 'hdp_planner', 'controller_node': 'hdp_controller'}
+# The managed nodes in the order they go up: the controller is active before the planner sends it work.
+MANAGED = ('controller_node', 'planner_node')
+MANAGER = 'lifecycle_manager'
 STOP_GRACE_S = 15.0            # for a node to exit after SIGINT, before SIGTERM and then SIGKILL
 ON_EXIT = ('keep', 'shutdown', 'respawn')    # what a node's exit does to the graph
 
@@ -43,7 +48,8 @@ def configure(parser) -> None:
     parser.add_argument('--method', help=f"controller_node's low level: {' | '.join(METHODS)}")
     parser.add_argument('--nodes', default=','.join(NODES),
                         help='comma-separated nodes to start (default: all three; '
-                             'planner_node,controller_node for a real robot)')
+                             'planner_node,controller_node for a real robot); with either of those, '
+                             f'{MANAGER} too')
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
                         help='override one parameter, e.g. controller_node:method:=planner (repeatable)')
     parser.add_argument('--exit-on-node-exit', action='store_true',
@@ -83,17 +89,29 @@ def exit_policies(nodes, exit_on_node_exit: bool, respawn) -> dict[str, str]:
     return {n: 'respawn' if n in respawn else 'shutdown' if exit_on_node_exit else 'keep' for n in nodes}
 
 
+def managed(nodes) -> list[str]:
+    """The managed nodes among ``nodes``, in the order the lifecycle manager brings them up."""
+    return [n for n in MANAGED if n in nodes]
+
+
 def node_commands(nodes: list[str], params_file: Path, overrides: list[str]) -> dict[str, list[str]]:
-    """node -> the command line that starts it with this Python, its parameters and overrides."""
+    """node -> the command line that starts it with this Python, its parameters and overrides;
+    with a managed node among them, the lifecycle manager's last (it manages those started)."""
     unknown = [n for n in nodes if n not in NODES]
     if unknown or not nodes:
         raise ValueError(f'unknown node(s) {unknown}; nodes: {", ".join(NODES)}')
-    commands = {n: [sys.executable, '-m', f'{NODES[n]}.{n}', '--ros-args', '--params-file', str(params_file)]
-                for n in nodes}
+    modules = {n: f'{NODES[n]}.{n}' for n in nodes}
+    if managed(nodes):
+        modules[MANAGER] = f'hdp_bringup.{MANAGER}'
+    commands = {n: [sys.executable, '-m', module, '--ros-args', '--params-file', str(params_file)]
+                for n, module in modules.items()}
+    if MANAGER in commands:
+        commands[MANAGER] += ['-p', f'node_names:=[{",".join(managed(nodes))}]']
     for override in overrides:
         node, _, assignment = override.partition(':')
-        if node not in NODES or ':=' not in assignment:
-            raise ValueError(f'--param takes NODE:NAME:=VALUE with NODE one of {", ".join(NODES)}, got {override!r}')
+        if node not in (*NODES, MANAGER) or ':=' not in assignment:
+            raise ValueError(f'--param takes NODE:NAME:=VALUE with NODE one of {", ".join((*NODES, MANAGER))}, '
+                             f'got {override!r}')
         if node in commands:
             commands[node] += ['-p', assignment]
     return commands
@@ -159,8 +177,8 @@ def run(args) -> int:
         arguments = [f'{node}:{name}:={value}' for node, values in
                      launch_overrides(args.task, args.seed, args.method).items() for name, value in values.items()]
         commands = node_commands(nodes, params_file, arguments + args.param)     # -p has the last word
-        policies = exit_policies(nodes, args.exit_on_node_exit, [n.strip() for n in args.respawn.split(',')
-                                                                  if n.strip()])
+        policies = exit_policies(list(commands), args.exit_on_node_exit,
+                             [n.strip() for n in args.respawn.split(',') if n.strip()])
         if args.respawn_delay < 0:
             raise ValueError(f'--respawn-delay must be >= 0, got {args.respawn_delay}')
     except ValueError as err:

@@ -1,4 +1,5 @@
-"""Bring up the HDP graph: sim_bridge_node, planner_node and controller_node.
+"""Bring up the HDP graph: sim_bridge_node, planner_node and controller_node (managed nodes,
+brought to active by lifecycle_manager, controller first).
 
     ros2 launch hdp_bringup hdp_graph.launch.py
     ros2 launch hdp_bringup hdp_graph.launch.py task:=open_drawer seed:=3 method:=planner
@@ -17,7 +18,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from hdp_bringup.launch_cli import METHODS, NODES, launch_overrides
+from hdp_bringup.launch_cli import MANAGED, MANAGER, METHODS, NODES, launch_overrides
 
 ARGUMENTS = {
     'task': ('', 'the simulated task (default: the params file\'s)'),
@@ -33,7 +34,9 @@ def _nodes(context):
     overrides = launch_overrides(value['task'] or None, value['seed'] or None, value['method'] or None)
     return [Node(package=package, executable=name, name=name, output='screen',
                  parameters=[value['params_file'], overrides.get(name, {})])
-            for name, package in NODES.items()]
+            for name, package in NODES.items()] + [
+        Node(package='hdp_bringup', executable=MANAGER, name=MANAGER, output='screen',
+             parameters=[value['params_file'], {'node_names': list(MANAGED)}])]
 
 
 def generate_launch_description():

@@ -37,6 +37,7 @@ from launch.launch_description_sources import PythonLaunchDescriptionSource
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from hdp_bringup.launch_cli import MANAGED, MANAGER
 from hdp_motion.panda import ROBOT_BASE
 
 CAMERAS = ('front', 'side')
@@ -89,6 +90,9 @@ def _nodes(context):
         Node(package='hdp_controller', executable='controller_node', name='controller_node',
              parameters=[params, robot], output='screen',
              remappings=[('/panda_arm_controller/joint_trajectory', f'/{ARM_CONTROLLER}/joint_trajectory')]),
+        # Brings both to active, controller first (its section of the params file: autostart, timeouts).
+        Node(package='hdp_bringup', executable=MANAGER, name=MANAGER, output='screen',
+             parameters=[params, {'node_names': list(MANAGED)}]),
     ]
     return [franka, arm_controller, *[camera(name, arg[f'{name}_serial']) for name in CAMERAS], *transforms, *hdp]
 

@@ -1,6 +1,10 @@
 """controller_node: each next-best pose -> a JointTrajectory for the arm, then the gripper, then a result.
 
-The logic is segment_controller.SegmentController; this node wires it to topics and
+A managed (lifecycle) node: configure loads the low level and warms it up, activate starts
+taking NBPs, deactivate (and shutdown) fails the running segment and holds the arm (cancels
+the FollowJointTrajectory goal, or sends joint_trajectory_controller's hold point), cleanup
+lets the model go; an NBP that comes while the node is not active is answered 'failed'. The
+logic is segment_controller.SegmentController; this node wires it to topics and
 parameters. A 20 Hz timer advances the segment. Planning runs inside that timer
 callback: the executor is single-threaded, so messages wait in their readers meanwhile
 (the latest joint state and camera frames are all the node keeps), and the arm is at rest
@@ -48,8 +52,9 @@ def _segment_settings(p: dict) -> dict:
             'plan_attempts': p['plan_attempts'], 'carry_on_unsettled': p['unsettled'] == 'carry_on'}
 
 
-class ControllerNode(ros.Node):
+class ControllerNode(ros.LifecycleNode):
     PARAMETERS = {
+        **ros.LifecycleNode.LIFECYCLE_PARAMETERS,
         'method': ('rkd', f'low-level method: {" | ".join(METHODS)}'),
         'checkpoint': ('', "RK-Diffuser checkpoint; '' = models/rk_diffuser_11tasks.pt ($HDP_MODELS_DIR)"),
         'sampler': ('ddim', 'ddim (5 steps, fast) | ddpm (100 steps)'),
@@ -95,14 +100,25 @@ class ControllerNode(ros.Node):
                 raise ros.StartupError(f'parameter {name!r} must be > 0, got {p[name]}')
         if p['plan_attempts'] < 1:
             raise ros.StartupError(f"parameter 'plan_attempts' must be >= 1, got {p['plan_attempts']}")
+        try:
+            panda.limits_for(p['robot_type'])
+        except ValueError as err:
+            raise ros.StartupError(f"parameter 'robot_type': {err}") from None
 
     def __init__(self):
         super().__init__('controller_node')
         p = self.declare_parameter_table()
-        try:
-            limits = panda.limits_for(p['robot_type'])
-        except ValueError as err:
-            raise ros.StartupError(f"parameter 'robot_type': {err}") from None
+        self.logic = self.arm_action = self.gripper_action = None
+        # In every state: each NBP is answered (failed unless active), and the node says how it stands.
+        self.status = ros.Status(self)
+        self._result = self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS)
+        self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
+        diagnostics.advertise(self, self._diagnostics)
+        if not p['autostart']:
+            self.status.info(f'unconfigured: waiting for a lifecycle manager ({ros.MANAGER_HINT})')
+
+    def configure(self, p: dict) -> None:
+        limits = panda.limits_for(p['robot_type'])
         torch.set_num_threads(p['cpu_threads'])
         try:
             policy = load_policy(p['method'], p['checkpoint'] or None, sampler=p['sampler'], limits=limits,
@@ -115,17 +131,14 @@ class ControllerNode(ros.Node):
             policy, needs_points=p['method'] in LEARNED, arm_joints=arm_joints,
             finger_joints=panda.finger_joint_names(p['joint_prefix']), limits=limits, **_segment_settings(p))
 
-        self.status = ros.Status(self)
         self._arm = self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS)
         self._gripper = self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS)
-        self._result = self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS)
         # As real robots take commands: joint_trajectory_controller's and franka_gripper's actions.
         # (Parameters rather than remapping: rcl remaps action names only since 2024, rcl#1170.)
         self.arm_action = (ArmAction(self, p['arm_action'], arm_joints, self._send, self.logic.arm_failed)
                            if p['arm_interface'] == 'action' else None)
         self.gripper_action = (GripperAction(self, p['gripper_action']) if p['gripper_interface'] == 'action'
                                else None)
-        self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
         # planner_node's /hdp/stop: frame_id says why.
         self.create_subscription(Header, topics.HOLD, lambda m: self._send(self.logic.hold(m.frame_id)),
                                  topics.COMMAND_QOS)
@@ -136,7 +149,8 @@ class ControllerNode(ros.Node):
         self._depth_rate = diagnostics.RateMeter(time.monotonic()) if p['method'] in LEARNED else None
         self._last_plan = None             # the last ArmCommand's PlanReport, for /diagnostics
         self._model = {'method': p['method'], 'checkpoint': p['checkpoint'] or 'default',
-                       'device': str(policy.device) if p['method'] in LEARNED else 'cpu', 'warm_up_s': warm_up_s}
+                       'device': str(policy.device) if p['method'] in LEARNED else 'cpu', 'warm_up_s': warm_up_s,
+                       'sampler': p['sampler'] if p['method'] in LEARNED else ''}
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
         self.create_subscription(Image, topics.depth_image(_CAMERA), self._on_depth, topics.SENSOR_QOS)
         self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
@@ -145,12 +159,25 @@ class ControllerNode(ros.Node):
         self.create_timer(_STEP_S, self._step)
         # On the wall clock: under use_sim_time the timer above stops with the simulator.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        diagnostics.advertise(self, self._diagnostics)
-        sampler = f" ({p['sampler']} sampler)" if p['method'] in LEARNED else ''
-        self.status.info(f"ready: method {p['method']}{sampler}, velocity scale {p['velocity_scale']} "
+        self.status.info(f"configured: method {p['method']} on {self._model['device']} "
                          f'(warmed up in {warm_up_s:.2f} s)')
 
+    def activate(self) -> None:
+        self.liveness.heard(time.monotonic())     # an inactive node heard nothing it needed
+        sampler = f" ({self._model['sampler']} sampler)" if self._model['sampler'] else ''
+        self.status.info(f"ready: method {self._model['method']}{sampler}, velocity scale "
+                         f"{self.get_parameter('velocity_scale').value} (warmed up in {self._model['warm_up_s']:.2f} s)")
+
+    def deactivate(self, why: str, shutting_down: bool) -> None:
+        self._send(self.logic.hold(why))
+        self.status.info(f'{"shutting down" if shutting_down else "inactive"}: {why}')
+
+    def forget(self) -> None:
+        self.logic = self.arm_action = self.gripper_action = None
+
     def apply_parameters(self, p: dict) -> None:
+        if self.logic is None:             # unconfigured: configure reads them
+            return
         self.logic.configure(**_segment_settings(p))
         self.liveness.set_timeout(p['state_timeout_s'])
 
@@ -158,6 +185,8 @@ class ControllerNode(ros.Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _step(self):
+        if not self.active:
+            return
         started = time.monotonic()
         self._send(self.logic.step(self._now()))
         if time.monotonic() - started > _WATCH_S:      # it planned: no message was taken meanwhile
@@ -174,8 +203,12 @@ class ControllerNode(ros.Node):
         self.logic.on_depth(msg)
 
     def _diagnostics(self, wall_s: float) -> list:
-        name, timeout_s = self.get_name(), self.liveness.timeout_s
-        out = [diagnostics.status(name, 'model', diagnostics.OK,
+        name = self.get_name()
+        state = diagnostics.lifecycle_status(name, self.state_label, self.failure)
+        if self.logic is None:
+            return [state]
+        timeout_s = self.liveness.timeout_s
+        out = [state, diagnostics.status(name, 'model', diagnostics.OK,
                                   f"{self._model['method']} on {self._model['device']}", self._model),
                diagnostics.topic_status(name, 'joint states', topics.JOINT_STATES, self._joint_rate, wall_s,
                                         _JOINT_STATE_HZ, timeout_s, ROBOT_HINT)]
@@ -192,6 +225,8 @@ class ControllerNode(ros.Node):
         return out + [diagnostics.liveness_status(name, self.liveness, wall_s, self._now())]
 
     def _watch(self):
+        if not self.active:
+            return
         stalled = self.liveness.stalled(time.monotonic())
         if stalled is not None:
             self.status.error(stalled)
@@ -201,7 +236,12 @@ class ControllerNode(ros.Node):
             self._send(self.logic.robot_gone(problem))
 
     def _on_nbp(self, msg):
-        self._send(self.logic.on_nbp(msg, self._now()))
+        if self.active:
+            self._send(self.logic.on_nbp(msg, self._now()))
+            return
+        why = f'controller_node is {self.state_label} ({ros.MANAGER_HINT})'
+        self._send([StatusLine(f'refused segment: {why}', error=True),
+                    SegmentResult(Header(stamp=msg.header.stamp, frame_id=topics.SEGMENT_FAILED + why))])
 
     def _send(self, outputs):
         for out in outputs:

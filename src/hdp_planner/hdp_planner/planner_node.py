@@ -1,6 +1,10 @@
 """planner_node: an instruction -> next-best poses for the controller, one segment at a time.
 
-The logic is planner_logic.PlannerLoop; this node wires it to topics and parameters. A
+A managed (lifecycle) node: configure loads the agent and warms it up, activate starts
+taking instructions, deactivate ends the running one ('stopped') and holds the arm, cleanup
+lets the agent go; an instruction that comes while the node is not active is refused on
+/hdp/outcome, and at shutdown the running and waiting ones end 'shutdown'. The logic is
+planner_logic.PlannerLoop; this node wires it to topics and parameters. A
 10 Hz timer advances the loop, and the agent predicts inside that callback (a few tens of
 milliseconds on a CPU core). Timeouts run on the node's clock (the graph's YAML keeps this
 node on wall time); a second timer on the steady clock fails the running instruction when
@@ -43,8 +47,9 @@ def _limits(p: dict) -> dict:
                                        'queue_policy', 'max_queued')}
 
 
-class PlannerNode(ros.Node):
+class PlannerNode(ros.LifecycleNode):
     PARAMETERS = {
+        **ros.LifecycleNode.LIFECYCLE_PARAMETERS,
         'checkpoint': ('', "next-best-pose agent; '' = models/hdp_nbp_agent_11tasks.pt ($HDP_MODELS_DIR)"),
         'max_segments': (8, 'segments per instruction before it has failed'),
         'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
@@ -92,6 +97,16 @@ class PlannerNode(ros.Node):
     def __init__(self):
         super().__init__('planner_node')
         p = self.declare_parameter_table()
+        self.loop = self.observations = None
+        # In every state: instructions are answered (refused unless active), and the node says how it stands.
+        self.status = ros.Status(self)
+        self._outcome = self.create_publisher(String, topics.OUTCOME, topics.INSTRUCTION_QOS)
+        self.create_subscription(String, topics.INSTRUCTION, self._on_instruction, topics.INSTRUCTION_QOS)
+        diagnostics.advertise(self, self._diagnostics)
+        if not p['autostart']:
+            self.status.info(f'unconfigured: waiting for a lifecycle manager ({ros.MANAGER_HINT})')
+
+    def configure(self, p: dict) -> None:
         camera_size = None if tuple(p['camera_size']) == (0, 0) else tuple(p['camera_size'])
         torch.set_num_threads(p['cpu_threads'])
         checkpoint = p['checkpoint'] or default_checkpoint()
@@ -111,18 +126,13 @@ class PlannerNode(ros.Node):
         self._joint_rate = diagnostics.RateMeter(time.monotonic())
         self._camera_rates = {camera: diagnostics.RateMeter(time.monotonic()) for camera in topics.CAMERAS}
 
-        self.status = ros.Status(self)
         self._nbp = self.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
         self._gripper_goal = self.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS)
-        self._outcome = self.create_publisher(String, topics.OUTCOME, topics.INSTRUCTION_QOS)
         # For RViz and Foxglove: the NBP as a TF frame and an arrow.
         self._tf = self.create_publisher(TFMessage, topics.TF, topics.TF_QOS)
         self._marker = self.create_publisher(Marker, topics.NEXT_BEST_POSE_MARKER, topics.COMMAND_QOS)
         self._cloud = None
         self._publish_cloud(p['publish_cloud'])
-        self.create_subscription(String, topics.INSTRUCTION,
-                                 lambda m: self._send(self.loop.on_instruction(m.data, self._now())),
-                                 topics.INSTRUCTION_QOS)
         for camera in topics.CAMERAS:
             for msg_type, topic, callback in (
                     (Image, topics.color_image(camera), self._on_color),
@@ -140,11 +150,26 @@ class PlannerNode(ros.Node):
         self.create_timer(_STEP_S, self._step)
         # On the wall clock, in case this node runs on sim time and the simulator dies.
         self.create_timer(_WATCH_S, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        diagnostics.advertise(self, self._diagnostics)
-        self.status.info(f'ready: agent {checkpoint}, up to {p["max_segments"]} segments per instruction '
-                         f'(warmed up in {warm_up_s:.2f} s)')
+        self.status.info(f'configured: agent {checkpoint} on {agent.device} (warmed up in {warm_up_s:.2f} s)')
+
+    def activate(self) -> None:
+        self.liveness.heard(time.monotonic())     # an inactive node heard nothing it needed
+        self.status.info(f'ready: agent {self._model["checkpoint"]}, up to '
+                         f'{self.get_parameter("max_segments").value} segments per instruction (warmed up in {self._model["warm_up_s"]:.2f} s)')
+
+    def deactivate(self, why: str, shutting_down: bool) -> None:
+        now = self.get_clock().now()
+        self._hold.publish(Header(stamp=now.to_msg(), frame_id=why))
+        self._send(self.loop.shutdown(now.nanoseconds * 1e-9) if shutting_down
+                   else self.loop.stop(why, now.nanoseconds * 1e-9))
+        self.status.info(f'{"shutting down" if shutting_down else "inactive"}: {why}; arm held')
+
+    def forget(self) -> None:
+        self.loop = self.observations = None
 
     def apply_parameters(self, p: dict) -> None:
+        if self.loop is None:              # unconfigured: configure reads them
+            return
         self.loop.configure(**_limits(p))
         self.liveness.set_timeout(p['state_timeout_s'])
         self._camera_timeout_s = p['camera_timeout_s']
@@ -160,6 +185,14 @@ class PlannerNode(ros.Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def _on_instruction(self, msg):
+        if self.active:
+            self._send(self.loop.on_instruction(msg.data, self._now()))
+        else:
+            why = f'planner_node is {self.state_label} ({ros.MANAGER_HINT})'
+            self._send([StatusLine(f'refused instruction {msg.data.strip()[:200]!r}: {why}', error=True),
+                        Outcome(msg.data.strip(), 'refused', why, 0)])
+
     def _on_joint_state(self, msg):
         self.liveness.heard(time.monotonic())
         self._joint_rate.tick(time.monotonic())
@@ -171,7 +204,10 @@ class PlannerNode(ros.Node):
 
     def _diagnostics(self, wall_s: float) -> list:
         name = self.get_name()
-        out = [diagnostics.status(name, 'agent', diagnostics.OK,
+        state = diagnostics.lifecycle_status(name, self.state_label, self.failure)
+        if self.loop is None:
+            return [state]
+        out = [state, diagnostics.status(name, 'agent', diagnostics.OK,
                                   f"{self._model['checkpoint']} on {self._model['device']}", self._model),
                diagnostics.topic_status(name, 'joint states', topics.JOINT_STATES, self._joint_rate, wall_s,
                                         _JOINT_STATE_HZ, self.liveness.timeout_s, ROBOT_HINT)]
@@ -190,6 +226,8 @@ class PlannerNode(ros.Node):
         return out + [diagnostics.liveness_status(name, self.liveness, wall_s, self._now())]
 
     def _watch(self):
+        if not self.active:
+            return
         stalled = self.liveness.stalled(time.monotonic())
         if stalled is not None:
             self.status.error(stalled)
@@ -212,6 +250,8 @@ class PlannerNode(ros.Node):
         return response
 
     def _step(self):
+        if not self.active:
+            return
         started = time.monotonic()
         now = self.get_clock().now().nanoseconds
         self._send(self.loop.step(now * 1e-9, now))

@@ -79,6 +79,16 @@ def topic_status(node: str, what: str, topic: str, meter: RateMeter, wall_s: flo
                                                'expected_hz': expected_hz, 'timeout_s': timeout_s})
 
 
+def lifecycle_status(node: str, state: str, failure: str = '') -> DiagnosticStatus:
+    """The managed node's state: OK when active, WARN otherwise (ERROR when configure failed)."""
+    if state == 'active':
+        return status(node, 'lifecycle', OK, 'active', {'state': state})
+    if failure:
+        return status(node, 'lifecycle', ERROR, f'{state}: configure failed: {failure}', {'state': state})
+    return status(node, 'lifecycle', WARN, f'{state}: takes no work until activated (by the lifecycle manager)',
+                  {'state': state})
+
+
 def liveness_status(node: str, liveness, wall_s: float, clock_s: float) -> DiagnosticStatus:
     """The node's hdp_ros.liveness.Liveness: ERROR with its problem (the one its watchdog fails work
     for), else OK. clock_s: the node's clock now."""

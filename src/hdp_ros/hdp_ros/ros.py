@@ -1,9 +1,9 @@
 """What every HDP node adds to rclpy: a middleware set up for camera frames, callbacks that
-cannot stop the node, a status line for users, and a main().
+cannot stop the node, a status line for users, managed (lifecycle) states, and a main().
 
     from hdp_ros import ros
 
-    class PlannerNode(ros.Node): ...          # an rclpy.node.Node
+    class PlannerNode(ros.LifecycleNode): ...   # an rclpy.lifecycle.LifecycleNode
         self.status = ros.Status(self)
 
     def main(args=None):
@@ -11,13 +11,16 @@ cannot stop the node, a status line for users, and a main().
 
 Any process that talks to the graph calls ``ros.init()`` instead of ``rclpy.init()``.
 
-Plain rclpy propagates an exception raised in a subscription or timer callback
-out of spin, which ends the node; a robot's nodes should log it and keep
-serving the next message instead. A node that cannot start (a bad parameter, a
-damaged checkpoint) exits 1 with one line saying why, not a traceback.
+Plain rclpy propagates an exception raised in a subscription, timer or service
+callback out of spin, which ends the node; a robot's nodes should log it and
+keep serving the next message instead. A node that cannot start (a bad
+parameter, a damaged checkpoint) exits 1 with one line saying why, not a
+traceback. At Ctrl-C or SIGTERM a managed node goes through its shutdown
+transition (ending its work, and saying so) while the middleware still runs.
 """
 
 import functools
+import gc
 import os
 import signal
 import sys
@@ -27,10 +30,14 @@ import traceback
 from pathlib import Path
 
 import rclpy
+import rclpy.lifecycle
 import rclpy.node
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from hdp_msgs_py import topics
@@ -38,6 +45,9 @@ from hdp_msgs_py.msg import String
 
 from . import shm
 
+
+# What a node that waits for its transitions tells the user.
+MANAGER_HINT = 'hdp launch starts a lifecycle manager; alone: -p autostart:=true, or hdp lifecycle set'
 
 FASTDDS_LOCALHOST_PROFILE = Path(__file__).with_name('config') / 'fastdds_localhost.xml'
 
@@ -95,8 +105,9 @@ class StartupError(Exception):
     """A parameter or checkpoint the node cannot run with."""
 
 
-class Node(rclpy.node.Node):
-    """rclpy's Node whose subscription and timer callbacks log exceptions instead of ending spin.
+class _NodeRules:
+    """What Node and LifecycleNode add to rclpy's: callbacks that log exceptions instead of
+    ending spin, and parameters declared, checked and applied from one table.
 
     A node lists its parameters once, in PARAMETERS (name -> (default, description)):
     ``declare_parameter_table()`` declares them and returns their values, and
@@ -166,6 +177,168 @@ class Node(rclpy.node.Node):
     def create_timer(self, timer_period_sec, callback, **kwargs):
         return super().create_timer(timer_period_sec, self._guard('timer callback', callback), **kwargs)
 
+    def create_service(self, srv_type, srv_name, callback, **kwargs):
+        return super().create_service(srv_type, srv_name,
+                                      self._guard(f"service callback of '{srv_name}'", callback), **kwargs)
+
+
+class Node(_NodeRules, rclpy.node.Node):
+    """rclpy's Node with _NodeRules: for nodes that need no managed states (the simulator, tools)."""
+
+
+def _logged(transition):
+    """rclpy turns an exception in a transition callback into ERROR without a word: log it first."""
+    @functools.wraps(transition)
+    def logged(node, state):
+        try:
+            return transition(node, state)
+        except Exception:   # noqa: BLE001 (logged, re-raised for rclpy)
+            node.get_logger().error(f'{transition.__name__} raised:\n{traceback.format_exc().rstrip()}')
+            raise
+    return logged
+
+
+class LifecycleNode(_NodeRules, rclpy.lifecycle.LifecycleNode):
+    """A managed node (rclpy.lifecycle), its transitions as nav2's nodes keep them:
+
+    configure   configure(parameters): load and warm up, create what the work needs;
+                StartupError fails it with a status line saying why
+    activate    accept work (``active``; activate() for anything more)
+    deactivate  deactivate(why, shutting_down=False): end the running work, hold the arm
+    cleanup     release() what configure created, back to unconfigured
+    shutdown    deactivate(why, shutting_down=True) if active, then release()
+
+    Construction declares the parameters (PARAMETERS includes LIFECYCLE_PARAMETERS) and
+    should create what every state needs (the status line, /diagnostics); the standard
+    services /<node>/get_state and /<node>/change_state come from rclpy. Work that comes
+    while the node is not active is refused by the node, which says so. A transition that
+    raises is logged with its traceback and ends in error processing, which releases
+    everything (unconfigured).
+    """
+
+    LIFECYCLE_PARAMETERS = {
+        'autostart': (False, 'configure and activate at start, without a lifecycle manager '
+                             '(hdp launch starts one: hdp_bringup lifecycle_manager)'),
+    }
+
+    def __init__(self, node_name: str, **kwargs):
+        super().__init__(node_name, **kwargs)
+        # rclpy creates the lifecycle services itself, unguarded: a bad transition id would end spin.
+        for service in self.services:
+            service.callback = self._guard(f"service '{service.srv_name}'", service.callback)
+        self.active = False
+        self.configured = False
+        self.failure = ''                  # why the last configure failed
+        self._kept: set[int] = set()       # the entities construction made, which cleanup keeps
+
+    @property
+    def state_label(self) -> str:
+        """The primary state: unconfigured, inactive, active or finalized (or a transition's)."""
+        return self._state_machine.current_state[1]
+
+    # -- what a node defines ------------------------------------------------------------------
+    def configure(self, parameters: dict) -> None:
+        """Load, warm up, create the publishers, subscriptions and timers of the work."""
+
+    def activate(self) -> None:
+        """Anything beyond accepting work (``active`` is already True)."""
+
+    def deactivate(self, why: str, shutting_down: bool) -> None:
+        """End the running work and hold the arm (``active`` is already False)."""
+
+    def forget(self) -> None:
+        """Drop what configure() loaded (models), after its entities are gone."""
+
+    # -- rclpy's transition callbacks -----------------------------------------------------------
+    @_logged
+    def on_configure(self, state) -> TransitionCallbackReturn:
+        self._kept = {id(e) for e in self._entities()}
+        try:
+            self.configure(self.parameter_values())
+        except StartupError as err:
+            self.failure = str(err)
+            self.release()
+            self.get_logger().error(f'cannot configure: {err}')
+            return TransitionCallbackReturn.FAILURE
+        self.configured, self.failure = True, ''
+        return TransitionCallbackReturn.SUCCESS
+
+    @_logged
+    def on_activate(self, state) -> TransitionCallbackReturn:
+        self.active = True
+        self.activate()
+        return TransitionCallbackReturn.SUCCESS
+
+    @_logged
+    def on_deactivate(self, state) -> TransitionCallbackReturn:
+        self.active = False
+        self.deactivate(f'{self.get_name()} was deactivated', shutting_down=False)
+        return TransitionCallbackReturn.SUCCESS
+
+    @_logged
+    def on_cleanup(self, state) -> TransitionCallbackReturn:
+        self.release()
+        return TransitionCallbackReturn.SUCCESS
+
+    @_logged
+    def on_shutdown(self, state) -> TransitionCallbackReturn:
+        if self.active:
+            self.active = False
+            self.deactivate(f'{self.get_name()} shut down', shutting_down=True)
+        self.release()
+        return TransitionCallbackReturn.SUCCESS
+
+    @_logged
+    def on_error(self, state) -> TransitionCallbackReturn:
+        self.active = False
+        self.release()
+        return TransitionCallbackReturn.SUCCESS
+
+    # -- releasing ---------------------------------------------------------------------------------
+    def _entities(self) -> list:
+        return [*self.publishers, *self.subscriptions, *self.clients, *self.services, *self.timers,
+                *self.waitables]
+
+    def release(self) -> None:
+        """Destroy every entity made since construction (after what its publishers sent is
+        acknowledged, within a second), then forget() the models."""
+        made = [e for e in self._entities() if id(e) not in self._kept]
+        flush([e for e in made if isinstance(e, rclpy.publisher.Publisher)])
+        for entity in made:
+            match entity:
+                case rclpy.publisher.Publisher():
+                    self.destroy_publisher(entity)
+                case rclpy.subscription.Subscription():
+                    self.destroy_subscription(entity)
+                case rclpy.client.Client():
+                    self.destroy_client(entity)
+                case rclpy.service.Service():
+                    self.destroy_service(entity)
+                case rclpy.timer.Timer():
+                    self.destroy_timer(entity)
+                case _:                    # an action client or server
+                    entity.destroy()
+        self.configured = False
+        self.forget()
+        gc.collect()                       # models hold tens of MB: return them now, not at some later gc
+
+    def finish(self) -> None:
+        """Go through shutdown unless already finalized (the process is ending)."""
+        if self.state_label != 'finalized':
+            self.trigger_shutdown()
+
+
+def flush(publishers, timeout_s: float = 1.0) -> None:
+    """Wait, at most timeout_s in all, until each reliable reader has acknowledged what
+    ``publishers`` sent: a process that ends or destroys a publisher right after its last
+    message would otherwise lose it."""
+    end = time.monotonic() + timeout_s
+    for publisher in publishers:
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+
 
 class Status:
     """Log a line and publish it on /hdp/status as '<node name>: <line>', where users watch the graph."""
@@ -199,36 +372,69 @@ def usage(node_class, name: str) -> str:
     return '\n'.join(lines)
 
 
-def run(node_class, args=None, name: str = '') -> None:
+def run(node_class, args=None, name: str = '', threads: int = 1) -> None:
     """A node executable's main(): init, construct, spin, shut down cleanly.
 
-    Ctrl-C and SIGTERM end the spin; the node is destroyed either way. A
-    StartupError or a parameter of the wrong type or value ends the process
-    with exit status 1 and one line on stderr. ``-h``/``--help`` prints usage().
+    Ctrl-C and SIGTERM end the spin; a managed node then goes through its shutdown
+    transition, what it published is flushed, and the node is destroyed. (rclpy's own
+    handler would shut the middleware down first, and the node's last words with it; a
+    second Ctrl-C ends the process at once.) A StartupError or a parameter of the wrong
+    type or value ends the process with exit status 1 and one line on stderr, and so does
+    a failed configure under autostart. ``-h``/``--help`` prints usage(). ``threads`` > 1 spins
+    the node with a MultiThreadedExecutor (for callbacks that wait on a service's answer).
     """
     if {'-h', '--help'} & set(remove_ros_args(sys.argv if args is None else args)[1:]):
         print(usage(node_class, name))
         return
-    init(args=args)
+    init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+
+    def request_stop(signum, frame):
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, request_stop)
+    label = name or node_class.__name__
     try:
         node = node_class()
     except (StartupError, InvalidParameterTypeException, InvalidParameterValueException) as err:
-        rclpy.try_shutdown()
-        print(f'[ERROR] [{name or node_class.__name__}]: {err}', file=sys.stderr)
-        sys.exit(1)
+        _exit_failed(label, str(err))
     except BaseException:
         rclpy.try_shutdown()
         raise
+    executor = SingleThreadedExecutor() if threads == 1 else MultiThreadedExecutor(num_threads=threads)
+    executor.add_node(node)
+    failed = ''
     try:
-        rclpy.spin(node)
+        if isinstance(node, LifecycleNode) and node.get_parameter('autostart').value:
+            if node.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+                node.trigger_activate()
+            else:
+                failed = node.failure or 'configure failed (see the log above)'
+        while not failed and not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)     # a stop request is seen within 0.1 s
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # A signal can land while the executor builds its wait set (RCLError 'the given
+        # A second signal can land while the executor builds its wait set (RCLError 'the given
         # context is not valid') or while a subscription converts a message (pybind11 turns
         # the KeyboardInterrupt into 'Unable to convert call argument'): a shutdown, not a failure.
-        if not shutting_down():
+        if not stop.is_set():
             raise
     finally:
+        if rclpy.ok():
+            if isinstance(node, LifecycleNode):
+                node.finish()
+            flush(node.publishers)
         node.destroy_node()
-        rclpy.try_shutdown()
+    if failed:
+        _exit_failed(label, failed)
+    rclpy.try_shutdown()
+
+
+def _exit_failed(label: str, why: str):
+    rclpy.try_shutdown()
+    print(f'[ERROR] [{label}]: {why}', file=sys.stderr)
+    sys.exit(1)
