@@ -302,10 +302,15 @@ def _state(q, qd=None, width=0.08):
     return ArmState(np.asarray(q, float), np.zeros(7) if qd is None else np.asarray(qd, float), width)
 
 
-def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_settle():
+def _segment(goal, duration_s, start_s, timeout_s, gripper_open, **kwargs):
+    """A segment whose trajectory holds ``goal`` from start to end (where the arm goes is the test's)."""
     from hdp_controller.execution import SegmentExecution
+    return SegmentExecution([0.0, duration_s], [goal, goal], start_s, timeout_s, gripper_open, **kwargs)
+
+
+def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_settle():
     goal = panda.HOME + 0.2
-    run = SegmentExecution(goal, duration_s=2.0, start_s=10.0, timeout_s=5.0, gripper_open=False)
+    run = _segment(goal, duration_s=2.0, start_s=10.0, timeout_s=5.0, gripper_open=False)
     assert run.update(11.0, _state(goal)) == (False, None)                    # before the trajectory's end
     assert run.update(12.5, _state(goal + 0.05)) == (False, None)             # not there yet
     assert run.update(12.6, _state(goal, qd=np.full(7, 0.1))) == (False, None)  # there, still moving
@@ -317,43 +322,66 @@ def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_sett
 
 
 def test_segment_timeouts_and_no_gripper_action():
-    from hdp_controller.execution import BLOCKED_STILL_S, SegmentExecution
+    from hdp_controller.execution import BLOCKED_STILL_S
     goal = panda.HOME + 0.2
     moving = np.full(7, 0.05)
-    stuck = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    stuck = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     assert stuck.update(2.9, _state(goal + 0.1, moving)).result is None
     result = stuck.update(3.1, _state(goal + 0.1, moving)).result
     assert result.startswith('failed: the arm did not come to rest') and '0.100 rad' in result
     # carry_on (the simulated graph's choice): arrived where it is, the gripper acts, then done.
-    sliding = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=False, carry_on=True)
+    sliding = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=False, carry_on=True)
     assert sliding.update(2.9, _state(goal + 0.1, moving)) == (False, None)
     assert sliding.update(3.1, _state(goal + 0.1, moving)) == (True, None)
     assert sliding.unsettled == pytest.approx((0.1, 0.05)) and sliding.short_by is None
     assert sliding.update(3.2, _state(goal + 0.1, moving, width=0.0)) == (False, 'done')
     # Still but short (a drawer's end stop): done once it has been still for BLOCKED_STILL_S.
-    blocked = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    blocked = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     assert blocked.update(1.2, _state(goal + 0.03)).result is None
     assert blocked.update(1.2 + BLOCKED_STILL_S / 2, _state(goal + 0.03)).result is None
     assert blocked.update(1.2 + BLOCKED_STILL_S, _state(goal + 0.03)).result == 'done'
     assert blocked.short_by == pytest.approx(0.03)
     # Pressed on a stop, the velocities jitter; no progress for BLOCKED_STILL_S is what counts.
     from hdp_controller.execution import BLOCKED_BAND
-    pressed = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    pressed = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     jitter = [(goal + 0.03 + sign * BLOCKED_BAND / 3, np.full(7, 0.08 * sign)) for sign in (1, -1) * 5]
     times = 1.2 + np.arange(len(jitter)) * BLOCKED_STILL_S / 8
     results = [pressed.update(t, _state(q, qd)).result for t, (q, qd) in zip(times[:9], jitter)]
     assert results == [None] * 8 + ['done']
-    creeping = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    creeping = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     for i, t in enumerate(np.arange(1.2, 2.9, 0.1)):                # progress of 2 band widths per 0.5 s
         assert creeping.update(t, _state(goal + 0.1 - i * BLOCKED_BAND * 0.4, moving)).result is None
-    assert SegmentExecution(goal, 1.0, 0.0, 2.0, None).update(1.5, _state(goal)) == (False, 'done')
-    dead_gripper = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
+    assert _segment(goal, 1.0, 0.0, 2.0, None).update(1.5, _state(goal)) == (False, 'done')
+    dead_gripper = _segment(goal, 1.0, 0.0, 2.0, gripper_open=True)
     assert dead_gripper.update(1.0, _state(goal, width=0.0)).send_gripper
     assert dead_gripper.update(3.0, _state(goal, width=0.0)).result is None
     assert dead_gripper.update(4.1, _state(goal, width=0.0)).result.startswith('failed: the gripper did not open')
-    opening = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
+    opening = _segment(goal, 1.0, 0.0, 2.0, gripper_open=True)
     opening.update(1.0, _state(goal, width=0.0))
     assert opening.update(1.5, _state(goal, width=0.0795)).result == 'done'
+
+
+def test_an_arm_moved_away_from_our_trajectory_by_another_command_fails_the_segment_preempted():
+    """The probe's intruder: a FollowJointTrajectory goal from another client took joint 1 to -1.5
+    while our segment ran, and the segment was reported done, 'blocked'. Lagging behind ours (a
+    contact) or held short of it (an end stop) is not preemption; moving away from it is."""
+    from hdp_controller.execution import SegmentExecution
+    start, goal = panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])
+    run = SegmentExecution([0.0, 2.0], [start, goal], 10.0, 5.0, gripper_open=None,
+                           commanders=lambda: 'other commanders of the arm: /intruder (action client)')
+    assert np.allclose(run.ours_at(1.0), (start + goal) / 2)
+    lagging = start + np.array([0.15, 0, 0, 0, 0, 0, 0])              # 0.15 behind ours, catching up
+    assert run.update(11.0, _state(lagging, qd=[0.3, 0, 0, 0, 0, 0, 0])) == (False, None)
+    assert run.update(11.0, _state(lagging)) == (False, None)          # stuck on a contact
+    away = start - np.array([0.3, 0, 0, 0, 0, 0, 0])                   # towards j1 = -1.5
+    update = run.update(11.0, _state(away, qd=[-0.5, 0, 0, 0, 0, 0, 0]))
+    assert update.result == ('failed: preempted by another command (the arm left our trajectory: joint 1 at '
+                             f'{away[0]:.3f} rad, 0.600 from ours and moving away at 0.50 rad/s; '
+                             'other commanders of the arm: /intruder (action client))')
+    # After the trajectory's end ours stays at its last waypoint: pulled off it, the same.
+    done = SegmentExecution([0.0, 2.0], [start, goal], 10.0, 5.0, gripper_open=None)
+    assert done.update(12.5, _state(goal + [0, 0.2, 0, 0, 0, 0, 0], qd=[0, 0.4, 0, 0, 0, 0, 0])).result.startswith(
+        'failed: preempted by another command (the arm left our trajectory: joint 2')
 
 
 # --- the controller's state between messages ---------------------------------------------------
@@ -651,7 +679,7 @@ def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, inter
         assert facts['within_limits'] and facts['first_point_error'] < 0.05
     else:
         assert facts['trajectories'] == 0                             # all went as goals
-        assert any('sim_bridge_node: executing an arm goal' in s for s in facts['status'])
+        assert any('sim_bridge_node: executing FollowJointTrajectory goal' in s for s in facts['status'])
     assert facts['arm_error'] < 0.02                                  # at the last waypoint
     assert facts['ee_error_m'] < 0.01                                 # so at the NBP
     assert facts['gripper_width'] < 0.005                             # closed, as asked
@@ -721,8 +749,101 @@ def probe() -> None:
     rclpy.try_shutdown()
 
 
+@pytest.mark.dds
+@pytest.mark.parametrize('interface', ['topic', 'action'])
+def test_another_command_moving_the_arm_mid_segment_fails_the_segment_preempted(ros_domain, interface):
+    """The probe's intruder: while controller_node's slow segment runs, another client sends the
+    sim's arm a FollowJointTrajectory goal (all joints, joint 1 to -1.5 rad in 3 s). The segment
+    fails 'preempted by another command', never 'done (... blocked)', and the sim bridge says on
+    /hdp/status what preempted what."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
+    bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                               '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=2.0',
+                               '-p', 'task:=reach_target', '-p', 'seed:=3'],
+                              env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'autostart:=true', '-p', 'method:=planner', '-p', 'use_sim_time:=true',
+                                   '-p', 'velocity_scale:=0.05', '-p', f'arm_interface:={interface}'],
+                                  env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        probe = subprocess.run([sys.executable, __file__, 'intrude'], env=env, text=True, capture_output=True,
+                               timeout=120)
+    finally:
+        for proc in (controller, bridge):
+            proc.send_signal(signal.SIGINT)
+        errors = [proc.communicate(timeout=20)[1] for proc in (controller, bridge)]
+    assert probe.returncode == 0, probe.stderr + '\n'.join(errors)
+    facts = json.loads(probe.stdout.strip().splitlines()[-1])
+    result = facts['result']
+    assert result.startswith('failed: preempted by another command ('), facts
+    if interface == 'topic':            # seen in the joints; the graph names who else commands the arm
+        assert 'the arm left our trajectory: joint 1' in result and '/intruder_probe (' in result, result
+    preempts = [s for s in facts['status'] if s.startswith('sim_bridge_node: FollowJointTrajectory goal')
+                and ' preempts ' in s]
+    assert preempts, facts['status']
+    assert facts['intruder_status'] == 'succeeded'           # the other command did move the arm
+
+
+def intrude() -> None:
+    """Send a slow segment, then another client's arm goal mid-segment; print the segment's result."""
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.action import ActionClient
+
+    from hdp_msgs_py.msg import JointTrajectory, JointTrajectoryPoint, String
+    from hdp_ros import ros
+    ros.init(args=sys.argv)
+    node = ros.Node('intruder_probe')
+    seen = {'status': [], 'results': [], 'joints': None, 'moving': False}
+    node.create_subscription(String, topics.STATUS, lambda m: seen['status'].append(m.data), topics.STATUS_QOS)
+    result_sub = node.create_subscription(Header, topics.SEGMENT_RESULT, seen['results'].append, 10)
+    node.create_subscription(JointState, topics.JOINT_STATES, lambda m: seen.__setitem__('joints', m), 10)
+    pose_pub = node.create_publisher(PoseStamped, topics.NEXT_BEST_POSE, topics.COMMAND_QOS)
+    gripper_pub = node.create_publisher(JointState, topics.NEXT_BEST_GRIPPER, topics.COMMAND_QOS)
+    intruder = ActionClient(node, FollowJointTrajectory, topics.ARM_ACTION)
+
+    def spin(seconds, until):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not until():
+            rclpy.spin_once(node, timeout_sec=0.05)
+        return until()
+
+    assert spin(60, lambda: seen['joints'] is not None and pose_pub.get_subscription_count() > 0
+                and result_sub.get_publisher_count() > 0 and intruder.server_is_ready()), 'graph did not come up'
+    time.sleep(0.5)
+    goal = reachable_goal()
+    for stamp_sec in (2, 3, 4):          # as the probe above: a controller that has not heard the arm refuses
+        gripper_pub.publish(gripper_goal_msg(False, stamp_sec=stamp_sec))
+        pose_pub.publish(nbp(goal[:3], goal[3:], stamp_sec=stamp_sec))
+        if spin(5, lambda: any('executing' in s and 'sim_bridge_node' in s for s in seen['status'])):
+            break
+        assert seen['results'] and seen['results'][-1].frame_id.startswith('failed: no usable /joint_states'), \
+            seen['status']
+    spin(0.5, lambda: False)
+    assert not seen['results'] or seen['results'][-1].stamp.sec != stamp_sec, 'the segment ended too soon'
+    q = np.asarray(seen['joints'].position, dtype=float)[[list(seen['joints'].name).index(n)
+                                                           for n in panda.ARM_JOINTS]]
+    target = q.copy()
+    target[0] = -1.5
+    trajectory = JointTrajectory(joint_names=list(panda.ARM_JOINTS), points=[JointTrajectoryPoint(
+        positions=target.tolist(), time_from_start=conversions.seconds_to_duration(3.0))])
+    future = intruder.send_goal_async(FollowJointTrajectory.Goal(trajectory=trajectory))
+    assert spin(10, future.done) and future.result().accepted, 'the intruding goal was not accepted'
+    outcome = future.result().get_result_async()
+    assert spin(30, lambda: any(r.stamp.sec == stamp_sec for r in seen['results'])), seen['status']
+    spin(20, outcome.done)
+    spin(0.5, lambda: False)
+    from action_msgs.msg import GoalStatus
+    print(json.dumps({'result': next(r.frame_id for r in seen['results'] if r.stamp.sec == stamp_sec),
+                      'intruder_status': 'succeeded' if outcome.done() and outcome.result().status ==
+                      GoalStatus.STATUS_SUCCEEDED else 'not succeeded', 'status': seen['status']}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
 if __name__ == '__main__' and sys.argv[1:2] == ['probe']:
     probe()
+if __name__ == '__main__' and sys.argv[1:2] == ['intrude']:
+    intrude()
 
 
 @pytest.mark.dds
@@ -818,6 +939,17 @@ def test_the_arm_action_fails_a_segment_on_refusal_or_abort_and_cancels_one_that
     assert handle.cancelled == 1
     arm.cancel()                                                   # nothing active: nothing to cancel
     assert handle.cancelled == 1
+
+    # Another client's goal preempts ours: the sim aborts it, a JTC may cancel it.
+    for sec, status, why in ((8, GoalStatus.STATUS_ABORTED, 'preempted by another trajectory'),
+                             (9, GoalStatus.STATUS_CANCELED, '')):
+        arm.send(Time(sec=sec), JointTrajectory())
+        handle = _FakeGoalHandle()
+        client.goals[-1][1].set_result(handle)
+        result = FollowJointTrajectory.Result(error_code=-1, error_string=why)
+        handle.result.set_result(SimpleNamespace(status=status, result=result))
+    assert failed[-2:] == [(8, 'preempted by another command (the arm controller: preempted by another trajectory)'),
+                           (9, 'preempted by another command (the arm controller cancelled our goal)')]
 
     client.ready = False                                           # no controller at all
     arm.send(Time(sec=6), JointTrajectory())

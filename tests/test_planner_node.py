@@ -612,6 +612,51 @@ def test_hdp_stop_ends_the_instruction_stopped_and_holds_the_moving_arm(ros_doma
     assert planner.returncode == 0 and controller.returncode == 0, errors
 
 
+@pytest.mark.dds
+def test_after_a_stalled_controller_continues_the_planner_acts_on_its_result_at_once(ros_domain):
+    """The probe's SIGSTOP: controller_node stopped mid-segment for longer than its state_timeout_s,
+    then continued. It names its own stall (not the bridge), finishes the segment, and planner_node
+    ends the instruction on that result at once, not after its own result_timeout_s (60 s)."""
+    env = _env(ros_domain)
+    bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
+                               '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=2.0',
+                               '-p', 'task:=open_drawer', '-p', 'seed:=1'],
+                              env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
+                                   '-p', 'autostart:=true', '-p', 'method:=planner', '-p', 'use_sim_time:=true',
+                                   '-p', 'velocity_scale:=0.1', '-p', 'state_timeout_s:=2.0'],
+                                  env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    planner = subprocess.Popen([sys.executable, '-m', 'hdp_planner.planner_node', '--ros-args',
+                                '-p', 'autostart:=true', '-p', 'max_segments:=1', '-p', 'result_timeout_s:=60.0',
+                                '-p', 'camera_timeout_s:=30.0'],        # the released agent: a reachable NBP
+                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    listener = None
+    try:
+        listener = _status_listener(env, 1, 150, 'open the middle drawer')
+        first = subprocess.run([sys.executable, '-m', 'hdp_tools.cli.main', 'topic', 'echo', '--once',
+                                '--timeout', '90', topics.ARM_TRAJECTORY, 'trajectory_msgs/msg/JointTrajectory'],
+                               env=env, text=True, capture_output=True, timeout=120)
+        assert first.returncode == 0, first.stderr
+        controller.send_signal(signal.SIGSTOP)
+        time.sleep(5.0)                                  # over twice state_timeout_s; the sim runs on
+        controller.send_signal(signal.SIGCONT)
+        continued = time.time()
+        out, err = listener.communicate(timeout=150)
+    finally:
+        controller.send_signal(signal.SIGCONT)
+        errors = _stop(planner, controller, bridge)
+        if listener is not None and listener.poll() is None:
+            listener.kill()
+    facts = json.loads(out.strip().splitlines()[-1])
+    outcome, = facts['outcomes']
+    assert outcome['instruction'] == 'open the middle drawer' and outcome['segments'] == 1, facts['status']
+    assert outcome['wall_s'] - continued < 20.0, (outcome['wall_s'] - continued, facts['status'])
+    assert any(s.startswith('controller_node: this node itself did not run for') for s in facts['status'])
+    assert not any('no /joint_states' in s for s in facts['status']), facts['status']
+    assert not any('no result from the controller' in s for s in facts['status']), facts['status']
+    assert planner.returncode == 0, errors[0]
+
+
 # --- hdp launch -----------------------------------------------------------------------------------
 
 def _graph_yaml(tmp_path, planner_checkpoint) -> str:
@@ -734,7 +779,8 @@ def listen(expect: int, seconds: float, *instructions: str) -> None:
     node, status = _node('planner_listener')
     nbps, outcomes = [], []
     node.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, nbps.append, 10)
-    node.create_subscription(String, topics.OUTCOME, lambda m: outcomes.append(json.loads(m.data)), 10)
+    node.create_subscription(String, topics.OUTCOME,
+                             lambda m: outcomes.append({**json.loads(m.data), 'wall_s': time.time()}), 10)
     instruction = node.create_publisher(String, topics.INSTRUCTION, 10)
     assert _spin(node, 60, lambda: instruction.get_subscription_count() > 0), 'planner_node did not come up'
     _spin(node, 0.5)

@@ -22,7 +22,7 @@ from rclpy.action import ActionClient
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import seconds_to_duration, time_to_ns
 
-from .execution import GOAL_TOLERANCE
+from .execution import GOAL_TOLERANCE, PREEMPTED
 
 GOAL_TIME_TOLERANCE_S = 1.0        # after the trajectory's end, for the arm to come within tolerance
 GRIPPER_MAX_EFFORT = 20.0          # N, franka_gripper's grasp force
@@ -80,11 +80,15 @@ class ArmAction:
 
     def _on_result(self, stamp, future) -> None:
         response = future.result()
-        result = response.result
-        if response.status == GoalStatus.STATUS_ABORTED:
-            self._send(self._arm_failed(stamp, f'the arm controller aborted the trajectory: '
-                                               f'{result.error_string or "no reason given"} '
+        result, why = response.result, response.result.error_string or 'no reason given'
+        ours = self._active is not None and time_to_ns(self._active[0]) == time_to_ns(stamp)
+        if response.status == GoalStatus.STATUS_ABORTED and 'preempt' in why.lower():
+            self._send(self._arm_failed(stamp, f'{PREEMPTED} (the arm controller: {why})'))
+        elif response.status == GoalStatus.STATUS_ABORTED:
+            self._send(self._arm_failed(stamp, f'the arm controller aborted the trajectory: {why} '
                                                f'(error_code {result.error_code})'))
+        elif response.status == GoalStatus.STATUS_CANCELED and ours:      # we cancel only what we let go
+            self._send(self._arm_failed(stamp, f'{PREEMPTED} (the arm controller cancelled our goal)'))
 
 
 class GripperAction:

@@ -15,9 +15,11 @@ simulator, and the watchdog (hdp_ros.liveness) then fails the segment, naming th
 """
 
 
+import functools
 import time
 
 import torch
+from rclpy.action.graph import get_action_client_names_and_types_by_node
 from rclpy.clock import Clock, ClockType
 
 from hdp_motion import panda
@@ -129,7 +131,8 @@ class ControllerNode(ros.LifecycleNode):
         warm_up_s = warm_up(policy, arm_joints, limits)    # the first segment pays no first-call cost
         self.logic = SegmentController(
             policy, needs_points=p['method'] in LEARNED, arm_joints=arm_joints,
-            finger_joints=panda.finger_joint_names(p['joint_prefix']), limits=limits, **_segment_settings(p))
+            finger_joints=panda.finger_joint_names(p['joint_prefix']), limits=limits,
+            commanders=functools.partial(self._other_commanders, p['arm_action']), **_segment_settings(p))
 
         self._arm = self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS)
         self._gripper = self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS)
@@ -180,6 +183,19 @@ class ControllerNode(ros.LifecycleNode):
             return
         self.logic.configure(**_segment_settings(p))
         self.liveness.set_timeout(p['state_timeout_s'])
+
+    def _other_commanders(self, arm_action: str) -> str:
+        """Who else may command the arm, from the ROS graph: other publishers of its trajectory
+        topic and other clients of its FollowJointTrajectory action."""
+        me = self.get_fully_qualified_name()
+        found = {f'{_qualified(i.node_namespace, i.node_name)} ({topics.ARM_TRAJECTORY})'
+                 for i in self.get_publishers_info_by_topic(topics.ARM_TRAJECTORY)}
+        for name, namespace in self.get_node_names_and_namespaces():
+            clients = get_action_client_names_and_types_by_node(self, name, namespace)
+            if any(action == arm_action for action, _ in clients):
+                found.add(f'{_qualified(namespace, name)} ({arm_action} client)')
+        found = sorted(f for f in found if not f.startswith(me + ' '))
+        return f'other commanders of the arm: {", ".join(found)}' if found else 'no other commander on the ROS graph'
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -266,6 +282,10 @@ class ControllerNode(ros.LifecycleNode):
                     if self.arm_action is not None:
                         self.arm_action.segment_ended(out.header)
                     self._result.publish(out.header)
+
+
+def _qualified(namespace: str, name: str) -> str:
+    return f'{namespace.rstrip("/")}/{name}'
 
 
 def main(args=None):

@@ -22,6 +22,12 @@ GRIPPER_TOLERANCE = 0.002      # m of width from the target that counts as reach
 GRIPPER_MOVED = 0.001          # m of width change that shows the fingers responded
 GRIPPER_STILL_S = 0.2          # s without width change after moving: closed on an object
 GRIPPER_TIMEOUT_S = 3.0        # s for the fingers to reach the target or stop
+# Another command moves the arm: a joint this far from where our trajectory has it now (rad),
+# moving away from it faster than MOVING_AWAY (rad/s). A blocked or lagging arm is as far off,
+# but still or heading back towards ours; the sim tracks within 0.01 rad, a real JTC ~0.02.
+PATH_TOLERANCE = 0.1
+MOVING_AWAY = 0.1
+PREEMPTED = 'preempted by another command'      # a segment's failure reason (after 'failed: ')
 
 
 class Update(NamedTuple):
@@ -32,7 +38,7 @@ class Update(NamedTuple):
 class SegmentExecution:
     """Follows one published segment: arm arrival, then the gripper action, then the result.
 
-    goal_q: (7,) the trajectory's last waypoint. duration_s: its time_from_start.
+    times: (N,) the trajectory's time_from_start (s); positions: (N, 7) its waypoints.
     timeout_s: time after the trajectory's end for the arm to settle.
     gripper_open: the action after arriving, or None to leave the gripper as it is.
     Times are seconds on the node's clock (sim time under use_sim_time).
@@ -47,12 +53,18 @@ class SegmentExecution:
     lid it presses on, say) fails the segment, unless ``carry_on``: then it counts as arrived
     where it is (``unsettled`` says how far off and how fast), as the experts carried on after
     their rest timeout, and the planner re-observes from there.
+
+    Our segment is ours: an arm that leaves our trajectory (where it has the arm now) by
+    PATH_TOLERANCE on a joint while moving away from it was moved by another command, and the
+    segment fails, PREEMPTED, at once, naming the joint and what ``commanders()`` says of who
+    may have sent it.
     """
 
-    def __init__(self, goal_q, duration_s: float, start_s: float, timeout_s: float, gripper_open: bool | None,
-                 carry_on: bool = False):
-        self.goal_q = np.asarray(goal_q, dtype=float)
-        self.duration_s, self.start_s, self.timeout_s = duration_s, start_s, timeout_s
+    def __init__(self, times, positions, start_s: float, timeout_s: float, gripper_open: bool | None,
+                 carry_on: bool = False, commanders=lambda: ''):
+        self.times, self.positions = np.asarray(times, dtype=float), np.asarray(positions, dtype=float)
+        self.goal_q, self.duration_s = self.positions[-1], float(self.times[-1])
+        self.start_s, self.timeout_s, self.commanders = start_s, timeout_s, commanders
         self.carry_on = carry_on
         self.unsettled: tuple[float, float] | None = None           # (joint error rad, speed rad/s) on carrying on
         self.gripper_open = gripper_open
@@ -67,7 +79,26 @@ class SegmentExecution:
             return self._update_arm(now_s, state)
         return self._update_gripper(now_s, state.gripper_width)
 
+    def ours_at(self, elapsed_s: float) -> np.ndarray:
+        """(7,) where our trajectory has the arm ``elapsed_s`` after its start (linear between waypoints)."""
+        return np.array([np.interp(elapsed_s, self.times, joint) for joint in self.positions.T])
+
+    def _moved_away(self, now_s: float, state: ArmState) -> str | None:
+        """Why the arm is another command's, or None."""
+        offset = state.q - self.ours_at(now_s - self.start_s)
+        away = (np.abs(offset) > PATH_TOLERANCE) & (state.qd * np.sign(offset) > MOVING_AWAY)
+        if not away.any():
+            return None
+        j = int(np.argmax(np.where(away, np.abs(offset), 0.0)))
+        who = self.commanders()
+        who = f'; {who}' if who else ''
+        return (f'{topics.SEGMENT_FAILED}{PREEMPTED} (the arm left our trajectory: joint {j + 1} at '
+                f'{state.q[j]:.3f} rad, {abs(offset[j]):.3f} from ours and moving away at {abs(state.qd[j]):.2f} rad/s{who})')
+
     def _update_arm(self, now_s: float, state: ArmState) -> Update:
+        preempted = self._moved_away(now_s, state)
+        if preempted is not None:
+            return Update(result=preempted)
         error = float(np.max(np.abs(state.q - self.goal_q)))
         speed = float(np.max(np.abs(state.qd)))
         elapsed = now_s - self.start_s

@@ -98,6 +98,9 @@ class SegmentController:
     moved on (it stopped waiting, or the simulator was reset for a new episode, restarting sim
     time): the new NBP supersedes that segment, which ends 'failed: superseded by ...'.
 
+    commanders: a callable naming who else may command the arm (the node asks the ROS graph),
+    for a segment that another command preempts (execution.PREEMPTED).
+
     scene: a callable giving the planning baselines' collision scene for each segment (a
     simulator's, in the evaluations); None lets them build their own, as on a robot.
     """
@@ -106,8 +109,10 @@ class SegmentController:
                  arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS,
                  reach_tolerance: tuple[float, float] | None = (REACH_TOLERANCE_M, REACH_TOLERANCE_DEG),
                  limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'], carry_on_unsettled: bool = False,
-                 plan_attempts: int = PLAN_ATTEMPTS, scene: Callable | None = None):
+                 plan_attempts: int = PLAN_ATTEMPTS, scene: Callable | None = None,
+                 commanders: Callable[[], str] = lambda: ''):
         self.policy, self.needs_points, self.limits, self.scene = policy, needs_points, limits, scene
+        self.commanders = commanders
         self.configure(velocity_scale, segment_timeout_s, reach_tolerance, plan_attempts, carry_on_unsettled)
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
         self.state: ArmState | None = None
@@ -220,10 +225,12 @@ class SegmentController:
                                               self.scene() if self.scene is not None else None)
         except SegmentRefused as err:
             return out + self._refuse(stamp, str(err), plan=err.report)
-        duration = conversions.duration_to_seconds(trajectory.points[-1].time_from_start)
+        times = [conversions.duration_to_seconds(point.time_from_start) for point in trajectory.points]
+        duration = times[-1]
         act = goal_open if goal_open is not None and goal_open != is_open else None
-        self.running = (stamp, SegmentExecution(np.asarray(trajectory.points[-1].positions), duration, now_s,
-                                                self.segment_timeout_s, act, self.carry_on_unsettled))
+        self.running = (stamp, SegmentExecution(times, [point.positions for point in trajectory.points], now_s,
+                                                self.segment_timeout_s, act, self.carry_on_unsettled,
+                                                self.commanders))
         x, y, z = pending.goal[:3]
         gripper = '' if act is None else f', then {"open" if act else "close"} the gripper'
         return out + [ArmCommand(stamp, trajectory, report), StatusLine(
