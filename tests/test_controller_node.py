@@ -646,30 +646,37 @@ def test_a_segment_planning_refuses_fails_with_its_plan_report():
 
 # --- controller_node as a process next to sim_bridge_node -----------------------------------------
 
-@pytest.mark.dds
-@pytest.mark.parametrize('interface', ['topic', 'action'])
-def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, interface):
-    """Sim in the loop, on either interface: the JointTrajectory topic, or the
-    FollowJointTrajectory and GripperCommand actions the sim serves as JTC and franka_gripper do."""
+def _probe_beside_the_sim(ros_domain: int, probe: str, timeout_s: float, *controller_parameters):
+    """Run this file's ``probe`` mode beside sim_bridge_node (reach_target seed 3, 64x48 cameras) and
+    controller_node (method planner, sim time, the given parameters); (the probe's JSON facts, None
+    when the controller exited cleanly, else its stderr)."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
     bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
                                '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=2.0',
                                '-p', 'task:=reach_target', '-p', 'seed:=3'],
                               env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    parameters = [arg for parameter in ('autostart:=true', 'method:=planner', 'use_sim_time:=true',
+                                        *controller_parameters) for arg in ('-p', parameter)]
     controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
-                                   '-p', 'autostart:=true',
-                                   '-p', 'method:=planner', '-p', 'use_sim_time:=true',
-                                   '-p', f'arm_interface:={interface}', '-p', f'gripper_interface:={interface}'],
-                                  env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                                   *parameters], env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
-        probe = subprocess.run([sys.executable, __file__, 'probe'], env=env, text=True, capture_output=True,
-                               timeout=90)
+        run = subprocess.run([sys.executable, __file__, probe], env=env, text=True, capture_output=True,
+                             timeout=timeout_s)
     finally:
         for proc in (controller, bridge):
             proc.send_signal(signal.SIGINT)
         errors = [proc.communicate(timeout=20)[1] for proc in (controller, bridge)]
-    assert probe.returncode == 0, probe.stderr + '\n'.join(errors)
-    facts = json.loads(probe.stdout.strip().splitlines()[-1])
+    assert run.returncode == 0, run.stderr + '\n'.join(errors)
+    return json.loads(run.stdout.strip().splitlines()[-1]), None if controller.returncode == 0 else errors[0]
+
+
+@pytest.mark.dds
+@pytest.mark.parametrize('interface', ['topic', 'action'])
+def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, interface):
+    """Sim in the loop, on either interface: the JointTrajectory topic, or the
+    FollowJointTrajectory and GripperCommand actions the sim serves as JTC and franka_gripper do."""
+    facts, controller_err = _probe_beside_the_sim(ros_domain, 'probe', 90, f'arm_interface:={interface}',
+                                                  f'gripper_interface:={interface}')
     assert facts['nan_result'].startswith('failed: invalid pose: position must be finite')
     assert any('refused segment 1.000' in s for s in facts['status'])
     # The segment's own outcome first: on a loaded machine its status lines say why it failed.
@@ -683,7 +690,7 @@ def test_controller_node_executes_an_nbp_and_refuses_a_nan_one(ros_domain, inter
     assert facts['arm_error'] < 0.02                                  # at the last waypoint
     assert facts['ee_error_m'] < 0.01                                 # so at the NBP
     assert facts['gripper_width'] < 0.005                             # closed, as asked
-    assert controller.returncode == 0, errors[0]
+    assert controller_err is None
 
 
 def probe() -> None:
@@ -756,24 +763,8 @@ def test_another_command_moving_the_arm_mid_segment_fails_the_segment_preempted(
     sim's arm a FollowJointTrajectory goal (all joints, joint 1 to -1.5 rad in 3 s). The segment
     fails 'preempted by another command', never 'done (... blocked)', and the sim bridge says on
     /hdp/status what preempted what."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
-    bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
-                               '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=2.0',
-                               '-p', 'task:=reach_target', '-p', 'seed:=3'],
-                              env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    controller = subprocess.Popen([sys.executable, '-m', 'hdp_controller.controller_node', '--ros-args',
-                                   '-p', 'autostart:=true', '-p', 'method:=planner', '-p', 'use_sim_time:=true',
-                                   '-p', 'velocity_scale:=0.05', '-p', f'arm_interface:={interface}'],
-                                  env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        probe = subprocess.run([sys.executable, __file__, 'intrude'], env=env, text=True, capture_output=True,
-                               timeout=120)
-    finally:
-        for proc in (controller, bridge):
-            proc.send_signal(signal.SIGINT)
-        errors = [proc.communicate(timeout=20)[1] for proc in (controller, bridge)]
-    assert probe.returncode == 0, probe.stderr + '\n'.join(errors)
-    facts = json.loads(probe.stdout.strip().splitlines()[-1])
+    facts, controller_err = _probe_beside_the_sim(ros_domain, 'intrude', 120, 'velocity_scale:=0.05',
+                                                  f'arm_interface:={interface}')
     result = facts['result']
     assert result.startswith('failed: preempted by another command ('), facts
     if interface == 'topic':            # seen in the joints; the graph names who else commands the arm
@@ -782,6 +773,7 @@ def test_another_command_moving_the_arm_mid_segment_fails_the_segment_preempted(
                 and ' preempts ' in s]
     assert preempts, facts['status']
     assert facts['intruder_status'] == 'succeeded'           # the other command did move the arm
+    assert controller_err is None
 
 
 def intrude() -> None:

@@ -112,7 +112,6 @@ class ControllerNode(ros.LifecycleNode):
         p = self.declare_parameter_table()
         self.logic = self.arm_action = self.gripper_action = None
         # In every state: each NBP is answered (failed unless active), and the node says how it stands.
-        self.status = ros.Status(self)
         self._result = self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS)
         self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
         diagnostics.advertise(self, self._diagnostics)

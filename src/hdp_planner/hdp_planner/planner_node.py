@@ -99,7 +99,6 @@ class PlannerNode(ros.LifecycleNode):
         p = self.declare_parameter_table()
         self.loop = self.observations = None
         # In every state: instructions are answered (refused unless active), and the node says how it stands.
-        self.status = ros.Status(self)
         self._outcome = self.create_publisher(String, topics.OUTCOME, topics.INSTRUCTION_QOS)
         self.create_subscription(String, topics.INSTRUCTION, self._on_instruction, topics.INSTRUCTION_QOS)
         diagnostics.advertise(self, self._diagnostics)

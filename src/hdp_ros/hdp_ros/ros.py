@@ -32,12 +32,17 @@ from pathlib import Path
 import rclpy
 import rclpy.lifecycle
 import rclpy.node
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.client import Client
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.publisher import Publisher
+from rclpy.service import Service
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
 from rclpy.utilities import remove_ros_args
 
 from hdp_msgs_py import topics
@@ -208,8 +213,9 @@ class LifecycleNode(_NodeRules, rclpy.lifecycle.LifecycleNode):
     cleanup     release() what configure created, back to unconfigured
     shutdown    deactivate(why, shutting_down=True) if active, then release()
 
-    Construction declares the parameters (PARAMETERS includes LIFECYCLE_PARAMETERS) and
-    should create what every state needs (the status line, /diagnostics); the standard
+    Construction makes the status line (``status``); a node's constructor declares the
+    parameters (PARAMETERS includes LIFECYCLE_PARAMETERS) and creates what every state
+    needs (/diagnostics, the topics that answer work it refuses); the standard
     services /<node>/get_state and /<node>/change_state come from rclpy. Work that comes
     while the node is not active is refused by the node, which says so. A transition that
     raises is logged with its traceback and ends in error processing, which releases
@@ -226,8 +232,8 @@ class LifecycleNode(_NodeRules, rclpy.lifecycle.LifecycleNode):
         # rclpy creates the lifecycle services itself, unguarded: a bad transition id would end spin.
         for service in self.services:
             service.callback = self._guard(f"service '{service.srv_name}'", service.callback)
+        self.status = Status(self)
         self.active = False
-        self.configured = False
         self.failure = ''                  # why the last configure failed
         self._kept: set[int] = set()       # the entities construction made, which cleanup keeps
 
@@ -258,9 +264,9 @@ class LifecycleNode(_NodeRules, rclpy.lifecycle.LifecycleNode):
         except StartupError as err:
             self.failure = str(err)
             self.release()
-            self.get_logger().error(f'cannot configure: {err}')
+            self.status.error(f'cannot configure: {err}')
             return TransitionCallbackReturn.FAILURE
-        self.configured, self.failure = True, ''
+        self.failure = ''
         return TransitionCallbackReturn.SUCCESS
 
     @_logged
@@ -303,22 +309,21 @@ class LifecycleNode(_NodeRules, rclpy.lifecycle.LifecycleNode):
         """Destroy every entity made since construction (after what its publishers sent is
         acknowledged, within a second), then forget() the models."""
         made = [e for e in self._entities() if id(e) not in self._kept]
-        flush([e for e in made if isinstance(e, rclpy.publisher.Publisher)])
+        flush([e for e in made if isinstance(e, Publisher)])
         for entity in made:
             match entity:
-                case rclpy.publisher.Publisher():
+                case Publisher():
                     self.destroy_publisher(entity)
-                case rclpy.subscription.Subscription():
+                case Subscription():
                     self.destroy_subscription(entity)
-                case rclpy.client.Client():
+                case Client():
                     self.destroy_client(entity)
-                case rclpy.service.Service():
+                case Service():
                     self.destroy_service(entity)
-                case rclpy.timer.Timer():
+                case Timer():
                     self.destroy_timer(entity)
                 case _:                    # an action client or server
                     entity.destroy()
-        self.configured = False
         self.forget()
         gc.collect()                       # models hold tens of MB: return them now, not at some later gc
 
