@@ -12,7 +12,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
     ],
-    install_requires=['setuptools', 'hdp_motion', 'numpy', 'pyyaml'],
+    install_requires=['setuptools', 'hdp_motion', 'numpy', 'opencv-python-headless', 'pyyaml'],
     extras_require={'test': ['pytest']},
     zip_safe=True,
     maintainer='HDP-ROS developers',

@@ -58,6 +58,19 @@ def camera_info(camera: str) -> str:
     return f'/camera/{camera}/color/camera_info'
 
 
+# image_transport publishes each transport at '<raw topic>/<transport name>', as
+# realsense2_camera's streams appear with the compressed plugins installed
+# (hdp_msgs_py.image_transport encodes and decodes them).
+def color_image_compressed(camera: str) -> str:
+    """sensor_msgs/CompressedImage, the 'compressed' transport (JPEG) of color_image."""
+    return f'{color_image(camera)}/compressed'
+
+
+def depth_image_compressed(camera: str) -> str:
+    """sensor_msgs/CompressedImage, the 'compressedDepth' transport (16-bit PNG) of depth_image."""
+    return f'{depth_image(camera)}/compressedDepth'
+
+
 # QoS as ROS 2 uses it: cameras best effort, commands and state reliable, static
 # transforms latched for late joiners; /hdp/status kept like /rosout, so an observer that
 # joins (or is discovered) after a node said something, such as its start-up 'ready', still

@@ -25,7 +25,7 @@ from hdp_msgs_py.conversions import time_to_ns
 from hdp_msgs_py.msg import Bool, Header, Image, JointState, JointTrajectory, PoseStamped, String
 from hdp_msgs_py.outcome import Outcome
 
-from ..launch_cli import NODES, running_nodes, start_node
+from ..launch_cli import MANAGED, NODES, running_nodes, start_node
 from .cpu import cpu_usage
 from .episode_log import EpisodeLog, stall_report
 from .media import GIF_WIDTH
@@ -52,6 +52,7 @@ class DemoNode(ros.Node):
         self.episode: dict | None = None      # the latest /hdp/sim/episode
         self.success: bool | None = None      # the latest /hdp/sim/success since that episode
         self.frame = None                     # (sim stamp s, rgb) the latest front frame since then
+        self.ready: set[str] = set()          # managed nodes that said 'ready' (activated)
         self.instruction = self.create_publisher(String, topics.INSTRUCTION, topics.COMMAND_QOS)
         self.reset = self.create_publisher(String, topics.SIM_RESET, topics.COMMAND_QOS)
         self._arm_joints = list(panda.ARM_JOINTS)
@@ -88,6 +89,7 @@ class DemoNode(ros.Node):
                   ('planner_node publishing ' + topics.NEXT_BEST_POSE,
                    publishes('planner_node', topics.NEXT_BEST_POSE))]
         missing = [what for what, there in wanted if not there]
+        missing += [f'{name} active (its "ready" line)' for name in MANAGED if name not in self.ready]
         if self.count_publishers(topics.STATUS) < len(NODES):
             missing.append(f'{topics.STATUS} from all {len(NODES)} nodes')
         return missing
@@ -117,6 +119,9 @@ class DemoNode(ros.Node):
             self.log.success(self.now())
 
     def _on_status(self, msg):
+        name, _, line = msg.data.partition(': ')
+        if name in MANAGED and line.startswith('ready: '):      # /hdp/status is latched: heard late too
+            self.ready.add(name)
         if self.log is not None:
             self.log.status.append((self.now() - self.log.start, msg.data))
 
