@@ -24,9 +24,9 @@ from rclpy.clock import Clock, ClockType
 
 from hdp_motion import panda
 from hdp_msgs_py import topics
-from hdp_ros import diagnostics, ros
+from hdp_ros import diagnostics, image_input, ros
 from hdp_ros.liveness import ROBOT_HINT, Liveness
-from hdp_msgs_py.msg import CameraInfo, Header, Image, JointState, JointTrajectory, PoseStamped, TFMessage
+from hdp_msgs_py.msg import CameraInfo, Header, JointState, JointTrajectory, PoseStamped, TFMessage
 from hdp_msgs_py.outcome import StatusLine
 
 from .action_clients import ArmAction, GripperAction
@@ -74,6 +74,9 @@ class ControllerNode(ros.LifecycleNode):
         'plan_attempts': (PLAN_ATTEMPTS, 'plans drawn (fresh noise each) before one ending beyond the tolerance '
                                          'is refused'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
+        'image_transport': ('raw', "'raw': the cameras' sensor_msgs/Image; 'compressed': image_transport's "
+                                   'compressed (JPEG colour) and compressedDepth (16-bit PNG depth) topics, for '
+                                   'a network link (hdp_ros.image_input)'),
         'arm_interface': ('topic', "topic: JointTrajectory to the controller's topic; action: FollowJointTrajectory"),
         'arm_action': (topics.ARM_ACTION, "FollowJointTrajectory action: a JTC's <controller>/follow_joint_trajectory"),
         'gripper_interface': ('topic', 'topic: JointTrajectory of the fingers; action: GripperCommand (franka)'),
@@ -94,6 +97,9 @@ class ControllerNode(ros.LifecycleNode):
             raise ros.StartupError(f"parameter 'velocity_scale' must be in (0, 1], got {p['velocity_scale']}")
         if p['unsettled'] not in ('fail', 'carry_on'):
             raise ros.StartupError(f"parameter 'unsettled' must be fail or carry_on, got {p['unsettled']!r}")
+        if p['image_transport'] not in image_input.TRANSPORTS:
+            raise ros.StartupError("parameter 'image_transport' must be one of "
+                                   f"{', '.join(image_input.TRANSPORTS)}, got {p['image_transport']!r}")
         for name in ('arm_interface', 'gripper_interface'):
             if p[name] not in INTERFACES:
                 raise ros.StartupError(f"parameter {name!r} must be topic or action, got {p[name]!r}")
@@ -154,7 +160,8 @@ class ControllerNode(ros.LifecycleNode):
                        'device': str(policy.device) if p['method'] in LEARNED else 'cpu', 'warm_up_s': warm_up_s,
                        'sampler': p['sampler'] if p['method'] in LEARNED else ''}
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
-        self.create_subscription(Image, topics.depth_image(_CAMERA), self._on_depth, topics.SENSOR_QOS)
+        self.dropped_frames = image_input.DroppedFrames(self.get_logger())
+        image_input.subscribe(self, _CAMERA, 'depth', p['image_transport'], self._on_depth, self.dropped_frames)
         self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
                                  self.logic.on_camera_info, topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.TF_STATIC_QOS)
@@ -168,7 +175,8 @@ class ControllerNode(ros.LifecycleNode):
         self.liveness.heard(time.monotonic())     # an inactive node heard nothing it needed
         sampler = f" ({self._model['sampler']} sampler)" if self._model['sampler'] else ''
         self.status.info(f"ready: method {self._model['method']}{sampler}, velocity scale "
-                         f"{self.get_parameter('velocity_scale').value} (warmed up in {self._model['warm_up_s']:.2f} s)")
+                         f"{self.get_parameter('velocity_scale').value} "
+                         f"(warmed up in {self._model['warm_up_s']:.2f} s)")
 
     def deactivate(self, why: str, shutting_down: bool) -> None:
         self._send(self.logic.hold(why))

@@ -22,9 +22,9 @@ from std_srvs.srv import Trigger
 
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
-from hdp_ros import diagnostics, ros
+from hdp_ros import diagnostics, image_input, ros
 from hdp_ros.liveness import ROBOT_HINT, Liveness
-from hdp_msgs_py.msg import (Bool, CameraInfo, Header, Image, JointState, Marker, PointCloud2, PoseStamped, String,
+from hdp_msgs_py.msg import (Bool, CameraInfo, Header, JointState, Marker, PointCloud2, PoseStamped, String,
                              TFMessage)
 from hdp_msgs_py.outcome import Outcome, StatusLine
 
@@ -65,6 +65,9 @@ class PlannerNode(ros.LifecycleNode):
         'publish_cloud': (False, 'publish the cloud each prediction saw on /hdp/planner/cloud (for a viewer)'),
         'cpu_threads': (1, "torch's CPU threads; 1 keeps this node from fighting the simulator and the other node "
                            'for two cores (rkd planned in 0.5 s with torch\'s default 2, 0.08 s with 1)'),
+        'image_transport': ('raw', "'raw': the cameras' sensor_msgs/Image; 'compressed': image_transport's "
+                                   'compressed (JPEG colour) and compressedDepth (16-bit PNG depth) topics, for '
+                                   'a network link (hdp_ros.image_input)'),
         'camera_size': ([128, 96], 'the frame size [width, height] the agent was trained at (hdp collect --width '
                                    '--height); frames of another size are resampled to it; [0, 0] takes them as they come'),
     }
@@ -89,6 +92,9 @@ class PlannerNode(ros.LifecycleNode):
             raise ros.StartupError(f"parameter 'max_queued' must be >= 1, got {p['max_queued']}")
         if not 0.0 <= p['min_confidence'] < 1.0:
             raise ros.StartupError(f"parameter 'min_confidence' must be in [0, 1), got {p['min_confidence']}")
+        if p['image_transport'] not in image_input.TRANSPORTS:
+            raise ros.StartupError("parameter 'image_transport' must be one of "
+                                   f"{', '.join(image_input.TRANSPORTS)}, got {p['image_transport']!r}")
         camera_size = tuple(p['camera_size'])
         if camera_size != (0, 0) and (len(camera_size) != 2 or min(camera_size) < 8 or max(camera_size) > 4096):
             raise ros.StartupError("parameter 'camera_size' must be [width, height] in 8..4096, or [0, 0], "
@@ -132,12 +138,13 @@ class PlannerNode(ros.LifecycleNode):
         self._marker = self.create_publisher(Marker, topics.NEXT_BEST_POSE_MARKER, topics.COMMAND_QOS)
         self._cloud = None
         self._publish_cloud(p['publish_cloud'])
+        self.dropped_frames = image_input.DroppedFrames(self.get_logger())
         for camera in topics.CAMERAS:
-            for msg_type, topic, callback in (
-                    (Image, topics.color_image(camera), self._on_color),
-                    (Image, topics.depth_image(camera), observations.on_depth),
-                    (CameraInfo, topics.camera_info(camera), observations.on_info)):
-                self.create_subscription(msg_type, topic, functools.partial(callback, camera), topics.SENSOR_QOS)
+            for kind, callback in (('color', self._on_color), ('depth', observations.on_depth)):
+                image_input.subscribe(self, camera, kind, p['image_transport'],
+                                      functools.partial(callback, camera), self.dropped_frames)
+            self.create_subscription(CameraInfo, topics.camera_info(camera),
+                                     functools.partial(observations.on_info, camera), topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, observations.on_tf_static, topics.TF_STATIC_QOS)
         self.liveness = Liveness(p['state_timeout_s'])
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
@@ -154,7 +161,8 @@ class PlannerNode(ros.LifecycleNode):
     def activate(self) -> None:
         self.liveness.heard(time.monotonic())     # an inactive node heard nothing it needed
         self.status.info(f'ready: agent {self._model["checkpoint"]}, up to '
-                         f'{self.get_parameter("max_segments").value} segments per instruction (warmed up in {self._model["warm_up_s"]:.2f} s)')
+                         f'{self.get_parameter("max_segments").value} segments per instruction '
+                         f'(warmed up in {self._model["warm_up_s"]:.2f} s)')
 
     def deactivate(self, why: str, shutting_down: bool) -> None:
         now = self.get_clock().now()
