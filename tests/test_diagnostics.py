@@ -130,7 +130,7 @@ def test_the_nodes_diagnostics_are_ok_and_name_a_stopped_bridge(ros_domain):
     try:
         # Judged by whole arrays of the expected statuses: a node of another run that shares the
         # domain by chance (method rkd, say) publishes another set.
-        expected = {'controller_node': {'model', 'joint states', 'last segment', 'liveness'},
+        expected = {'controller_node': {'lifecycle', 'model', 'joint states', 'last segment', 'liveness'},
                     'sim_bridge_node': {'real-time factor', 'front camera', 'side camera', 'episode'}}
         controller_ok, bridge_ok = {}, {}
 
@@ -144,6 +144,7 @@ def test_the_nodes_diagnostics_are_ok_and_name_a_stopped_bridge(ros_domain):
 
         _until(reader, all_ok, 60)
         assert controller_ok['controller_node: model'][1] == 'planner on cpu'
+        assert controller_ok['controller_node: lifecycle'][1] == 'active'
         assert bridge_ok['sim_bridge_node: front camera'][1] == 'off (camera_rate_hz 0)'
         assert bridge_ok['sim_bridge_node: episode'][1].startswith('reach_target seed 0 variation ')
 

@@ -160,6 +160,39 @@ def test_hdp_launch_manages_the_nodes_through_pause_respawn_and_shutdown(ros_dom
     assert 'Traceback' not in text, text
 
 
+@pytest.mark.dds
+def test_a_node_that_cannot_configure_stays_unconfigured_says_why_and_refuses_instructions(ros_domain, tmp_path):
+    """A missing checkpoint under `hdp launch`: planner_node's configure fails (it says why), the
+    manager names the node that refused and stops the bring-up, and the node, alive and
+    unconfigured, answers an instruction with a refusal on /hdp/outcome."""
+    env = _env(ros_domain)
+    launch = subprocess.Popen([sys.executable, '-m', 'hdp_tools.cli.main', 'launch', '--nodes',
+                               'planner_node,controller_node', '-p', 'controller_node:method:=planner',
+                               '-p', 'controller_node:use_sim_time:=false',
+                               '-p', f'planner_node:checkpoint:={tmp_path / "missing.pt"}'],
+                              env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    output = _Output(launch)
+    try:
+        output.wait_for('[planner_node] ', 60)
+        output.wait_for('[planner_node]: cannot configure: cannot load the next-best-pose agent', 120)
+        output.wait_for('could not configure planner_node: it refused (its status says why); bring-up stopped', 30)
+        assert _hdp(env, 'lifecycle', 'get', '/planner_node').stdout.strip() == 'unconfigured'
+        echo = subprocess.Popen([sys.executable, '-m', 'hdp_tools.cli.main', 'topic', 'echo', '--once',
+                                 '--timeout', '30', '/hdp/outcome', 'std_msgs/msg/String'],
+                                env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        time.sleep(3.0)                            # the echo up and matched before the instruction goes
+        sent = _hdp(env, 'topic', 'pub', '--once', '-w', '1', '--max-wait', '30', '/hdp/instruction',
+                    'std_msgs/msg/String', "{data: 'open the drawer'}")
+        assert sent.returncode == 0, sent.stderr
+        out, err = echo.communicate(timeout=60)
+        outcome = json.loads(next(yaml.safe_load_all(out))['data'])
+        assert outcome['result'] == 'refused' and outcome['reason'].startswith('planner_node is unconfigured'), out
+    finally:
+        launch.send_signal(signal.SIGINT)
+        launch.wait(timeout=60)
+    assert launch.returncode == 0, '\n'.join(output.lines)
+
+
 def probe() -> None:
     """Drive the running graph through its lifecycle services and the manager's; print what it saw."""
     import rclpy

@@ -711,13 +711,13 @@ def test_hdp_launch_starts_the_graph_prefixes_output_and_stops_on_sigint(ros_dom
 
 
 @pytest.mark.dds
-def test_hdp_launch_exit_on_node_exit_stops_the_graph_when_a_node_dies(ros_domain, tmp_path):
-    params = _graph_yaml(tmp_path, tmp_path / 'missing.pt')
+def test_hdp_launch_exit_on_node_exit_stops_the_graph_when_a_node_dies(ros_domain, tmp_path, tiny_checkpoint):
+    params = _graph_yaml(tmp_path, tiny_checkpoint)
     launch = _launch(ros_domain, params, '--nodes', 'planner_node,controller_node', '--exit-on-node-exit',
-                     '-p', 'controller_node:method:=planner')
+                     '-p', 'controller_node:method:=planner', '-p', 'planner_node:max_segments:=0')
     out, _ = launch.communicate(timeout=60)
     assert launch.returncode == 1, out
-    assert '[planner_node] [ERROR] [planner_node]: cannot load the next-best-pose agent' in out
+    assert "[planner_node] [ERROR] [planner_node]: parameter 'max_segments' must be >= 1, got 0" in out
     assert '[launch] planner_node exited with code 1; stopping the other nodes' in out
 
 
@@ -729,13 +729,15 @@ def _wait_for(lines, proc, predicate, seconds: float) -> bool:
 
 
 @pytest.mark.dds
-def test_hdp_launch_keeps_the_other_nodes_by_default_and_respawns_on_request(ros_domain, tmp_path):
-    """As ros2 launch: a node that dies leaves the rest running; --respawn starts it again."""
-    params = _graph_yaml(tmp_path, tmp_path / 'missing.pt')
+def test_hdp_launch_keeps_the_other_nodes_by_default_and_respawns_on_request(ros_domain, tmp_path, tiny_checkpoint):
+    """As ros2 launch: a node that dies leaves the rest running (the lifecycle manager brings up
+    the controller without it); --respawn starts it again."""
+    params = _graph_yaml(tmp_path, tiny_checkpoint)
     launch = _launch(ros_domain, params, '--nodes', 'planner_node,controller_node',
-                     '-p', 'controller_node:method:=planner')
+                     '-p', 'controller_node:method:=planner', '-p', 'planner_node:max_segments:=0',
+                     '-p', 'lifecycle_manager:service_timeout_s:=5.0')
     lines, reader = _collect_lines(launch)
-    assert _wait_for(lines, launch, lambda text: '[launch] planner_node exited with code 1; 1 node(s) keep running'
+    assert _wait_for(lines, launch, lambda text: '[launch] planner_node exited with code 1; 2 node(s) keep running'
                      in text and 'ready: method planner' in text, 90), '\n'.join(lines)
     assert launch.poll() is None                      # the controller still runs
     launch.send_signal(signal.SIGINT)
@@ -745,7 +747,7 @@ def test_hdp_launch_keeps_the_other_nodes_by_default_and_respawns_on_request(ros
     assert "[launch] nodes that did not exit cleanly: {'planner_node': 1}" in lines, '\n'.join(lines)
 
     launch = _launch(ros_domain, params, '--nodes', 'planner_node', '--respawn', 'planner_node',
-                     '--respawn-delay', '0.2')
+                     '--respawn-delay', '0.2', '-p', 'planner_node:max_segments:=0')
     lines, reader = _collect_lines(launch)
     assert _wait_for(lines, launch, lambda text: text.count('[launch] started planner_node') >= 3, 120), \
         '\n'.join(lines)

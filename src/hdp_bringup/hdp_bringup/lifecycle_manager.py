@@ -8,11 +8,11 @@ every node is configured, then every node activated, at start. Services (std_srv
     ~/resume     activate again                             ~/reset    deactivate and clean up
     ~/shutdown   every node through its shutdown transition ~/is_active success: all active
 
-Once a second it asks each node its state. A node that comes back unconfigured while the graph
-should be active (hdp launch --respawn restarted it, or someone cleaned it up) is brought back
-to active; one that stops answering is named on /hdp/status. A transition that fails leaves the
-graph where it stood, says which node refused, and stops the bring-up (the node's own status
-line says why); ~/startup tries again.
+Once a second it asks each node its state. A node that appears, or comes back, unconfigured
+while the graph should be active (it started late, hdp launch --respawn restarted it, someone
+cleaned it up) is brought to active; one that stops answering is named on /hdp/status. A
+transition that fails leaves the graph where it stood, says which node refused, and stops the
+bring-up (the node's own status line says why); ~/startup tries again.
 """
 
 from __future__ import annotations
@@ -71,12 +71,13 @@ class LifecycleManager(ros.Node):
         self.destroy_timer(self._startup)
         self.status.info(f'bringing up {", ".join(self.order)}')
         started = time.monotonic()
-        missing = [name for name, client in self.clients_by_node.items()
-                   if not client.wait_for_services(self._service_timeout_s)]
-        if missing:
-            self.status.error(f'no lifecycle services from {", ".join(missing)} within '
-                              f'{self._service_timeout_s:.0f} s: are they running?')
-            return
+        end = started + self._service_timeout_s
+        waiting = list(self.order)
+        while waiting and time.monotonic() < end:
+            waiting = [name for name in waiting if not self.clients_by_node[name].wait_for_services(0.5)]
+        if waiting:
+            self.status.error(f'no lifecycle services from {", ".join(waiting)} within {self._service_timeout_s:.0f} s '
+                              '(are they running?): bringing up the others; they join when they appear')
         ok, message = self.bring_to('active')
         if ok:
             self.status.info(f'{message} in {time.monotonic() - started:.1f} s')
@@ -97,14 +98,14 @@ class LifecycleManager(ros.Node):
         return {name: client.get_state(self._transition_timeout_s) for name, client in self.clients_by_node.items()}
 
     def bring_to(self, goal: str) -> tuple[bool, str]:
-        """Take every node to ``goal`` (a primary state or 'finalized'), in order; (success, what happened)."""
+        """Take every node that answers to ``goal`` (a primary state or 'finalized'), in order;
+        (success, what happened). Nodes that do not answer are named, and the goal stays: the
+        state check brings them there when they appear."""
         self.goal = goal
         states = self.states()
-        silent = [name for name, state in states.items() if state is None]
-        if silent:
-            return self._failed(f'cannot bring the graph to {goal}: {", ".join(silent)} not answering')
+        present = [name for name in self.order if states[name] is not None]
         try:
-            plan = transitions(goal, states, self.order)
+            plan = transitions(goal, {name: states[name] for name in present}, present)
         except ValueError as err:
             return self._failed(str(err))
         for node, transition in plan:
@@ -114,6 +115,11 @@ class LifecycleManager(ros.Node):
                 why = 'no answer within the transition timeout' if ok is None else 'it refused (its status says why)'
                 return self._failed(f'could not {transition} {node}: {why}; bring-up stopped')
             self.status.info(f'{transition} {node}: done in {time.monotonic() - started:.2f} s')
+        silent = [name for name in self.order if name not in present]
+        if silent:
+            message = f'{", ".join(present) or "no node"} {goal}; not answering: {", ".join(silent)}'
+            self.status.error(message)
+            return False, message
         return True, f'{", ".join(self.order)} {goal}'
 
     def _failed(self, message: str) -> tuple[bool, str]:

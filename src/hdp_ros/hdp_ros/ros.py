@@ -48,29 +48,69 @@ from rclpy.utilities import remove_ros_args
 from hdp_msgs_py import topics
 from hdp_msgs_py.msg import String
 
-from . import shm
+from . import fastdds, shm
 
 
 # What a node that waits for its transitions tells the user.
 MANAGER_HINT = 'hdp launch starts a lifecycle manager; alone: -p autostart:=true, or hdp lifecycle set'
 
 FASTDDS_LOCALHOST_PROFILE = Path(__file__).with_name('config') / 'fastdds_localhost.xml'
+# Set, each of these says the user has set up Fast DDS themselves.
+_OWN_FASTDDS_SETUP = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE', 'ROS_DISCOVERY_SERVER')
 
 
-def use_localhost_profile(environ=os.environ) -> bool:
-    """Give Fast DDS the project's localhost profile (config/fastdds_localhost.xml says why)
-    unless the user chose a profile, another middleware, static peers or a wider discovery
-    range. True when it did. Children started from here inherit the choice."""
+def use_project_profile(environ=os.environ) -> str | None:
+    """Give Fast DDS the project's profile for the discovery the environment asks for, and say which:
+
+    'tls'        HDP_DDS_TLS_DIR and HDP_DDS_DISCOVERY_SERVER set (opt-in): fastdds.tls_profile
+    'localhost'  the default, ROS_AUTOMATIC_DISCOVERY_RANGE unset or LOCALHOST:
+                 config/fastdds_localhost.xml
+    'network'    SUBNET, or static peers (ROS_STATIC_PEERS) with LOCALHOST: fastdds.network_profile
+    None         the user's own choice stands: a profile file, ROS_DISCOVERY_SERVER, another
+                 RMW_IMPLEMENTATION, a discovery range OFF or SYSTEM_DEFAULT
+
+    The profile reaches rmw_fastrtps_cpp with the range SYSTEM_DEFAULT, the one range for which it
+    keeps the profile's transports and peers as they are. Children started from here inherit the
+    choice (their profile file is set). ValueError: a setting the profile cannot be made from.
+    """
+    tls = fastdds.tls_settings(environ)
+    if tls:
+        return _use_tls_profile(environ, tls)
     if environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp') != 'rmw_fastrtps_cpp':
-        return False
-    if any(environ.get(name) for name in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE',
-                                          'ROS_STATIC_PEERS')):
-        return False
-    if environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST') != 'LOCALHOST':
-        return False
-    environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(FASTDDS_LOCALHOST_PROFILE)
-    environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'    # rmw_fastrtps then takes the profile as is
-    return True
+        return None
+    if any(environ.get(name) for name in _OWN_FASTDDS_SETUP):
+        return None
+    discovery_range = environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    if discovery_range not in ('LOCALHOST', 'SUBNET'):
+        return None
+    peers = fastdds.static_peers(environ)
+    if discovery_range == 'LOCALHOST' and not peers:
+        name, profile = 'localhost', FASTDDS_LOCALHOST_PROFILE
+    else:
+        name, profile = 'network', fastdds.write_profile(
+            environ, 'network', fastdds.network_profile(peers, subnet=discovery_range == 'SUBNET'))
+    _give_rmw(environ, profile)
+    return name
+
+
+def _use_tls_profile(environ, tls: fastdds.TlsSettings) -> str:
+    """The TLS profile, or refusal: asked for, it must be what the process runs with."""
+    if environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp') != 'rmw_fastrtps_cpp':
+        raise ValueError('HDP_DDS_TLS_DIR: the TLS profile is for rmw_fastrtps_cpp; unset RMW_IMPLEMENTATION')
+    profile = environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+    if not fastdds.is_tls_profile(profile, environ):        # not one this process inherited
+        if any(environ.get(name) for name in _OWN_FASTDDS_SETUP):
+            raise ValueError('HDP_DDS_TLS_DIR asks for the TLS profile, but ' + ' and '.join(
+                name for name in _OWN_FASTDDS_SETUP if environ.get(name)) + ' set up Fast DDS otherwise')
+        profile = fastdds.write_profile(environ, 'tls', fastdds.tls_profile(tls))
+    environ['OPENSSL_CONF'] = str(fastdds.REQUIRE_PEER_CERTIFICATE)
+    _give_rmw(environ, profile)
+    return 'tls'
+
+
+def _give_rmw(environ, profile) -> None:
+    environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(profile)
+    environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SYSTEM_DEFAULT'    # rmw_fastrtps then takes it as it is
 
 
 _interrupted = threading.Event()
@@ -83,10 +123,10 @@ def _interrupt(signum, frame):
 
 
 def init(args=None, **kwargs) -> None:
-    """rclpy.init() with the middleware set up for the graph (use_localhost_profile), once the
+    """rclpy.init() with the middleware set up for the graph (use_project_profile), once the
     shared memory of Fast DDS processes that died without cleaning up is gone (shm)."""
     shm.remove_dead_segments()
-    use_localhost_profile()
+    use_project_profile()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _interrupt)        # rclpy's handler chains to this one
     rclpy.init(args=args, **kwargs)
@@ -423,10 +463,11 @@ def run(node_class, args=None, name: str = '', threads: int = 1) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # A second signal can land while the executor builds its wait set (RCLError 'the given
-        # context is not valid') or while a subscription converts a message (pybind11 turns
-        # the KeyboardInterrupt into 'Unable to convert call argument'): a shutdown, not a failure.
-        if not stop.is_set():
+        # The context can go down under the executor as it builds its wait set (RCLError 'the
+        # given context is not valid'), and a second signal can land while a subscription converts
+        # a message (pybind11 turns the KeyboardInterrupt into 'Unable to convert call argument'):
+        # a shutdown, not a failure.
+        if not stop.is_set() and rclpy.ok():
             raise
     finally:
         if rclpy.ok():
