@@ -364,24 +364,28 @@ def test_segment_timeouts_and_no_gripper_action():
 def test_an_arm_moved_away_from_our_trajectory_by_another_command_fails_the_segment_preempted():
     """The probe's intruder: a FollowJointTrajectory goal from another client took joint 1 to -1.5
     while our segment ran, and the segment was reported done, 'blocked'. Lagging behind ours (a
-    contact) or held short of it (an end stop) is not preemption; moving away from it is."""
-    from hdp_controller.execution import SegmentExecution
+    late start, a contact) or held short of it (an end stop) keeps the arm on our path; leaving
+    the path and moving away from it is preemption."""
+    from hdp_controller.execution import SegmentExecution, nearest_on_path
     start, goal = panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])
+    assert np.allclose(nearest_on_path(start + [0.3, 0.05, 0, 0, 0, 0, 0], np.stack([start, goal])),
+                       start + [0.3, 0, 0, 0, 0, 0, 0])
     run = SegmentExecution([0.0, 2.0], [start, goal], 10.0, 5.0, gripper_open=None,
                            commanders=lambda: 'other commanders of the arm: /intruder (action client)')
-    assert np.allclose(run.ours_at(1.0), (start + goal) / 2)
-    lagging = start + np.array([0.15, 0, 0, 0, 0, 0, 0])              # 0.15 behind ours, catching up
-    assert run.update(11.0, _state(lagging, qd=[0.3, 0, 0, 0, 0, 0, 0])) == (False, None)
-    assert run.update(11.0, _state(lagging)) == (False, None)          # stuck on a contact
+    lagging = start + np.array([0.05, 0, 0, 0, 0, 0, 0])              # far behind where ours is by now
+    assert run.update(11.9, _state(lagging, qd=[0.3, 0, 0, 0, 0, 0, 0])) == (False, None)
+    assert run.update(11.9, _state(lagging)) == (False, None)          # stuck on a contact
+    off_but_coming_back = start + np.array([0.2, 0.15, 0, 0, 0, 0, 0])
+    assert run.update(11.9, _state(off_but_coming_back, qd=[0, -0.3, 0, 0, 0, 0, 0])) == (False, None)
     away = start - np.array([0.3, 0, 0, 0, 0, 0, 0])                   # towards j1 = -1.5
     update = run.update(11.0, _state(away, qd=[-0.5, 0, 0, 0, 0, 0, 0]))
     assert update.result == ('failed: preempted by another command (the arm left our trajectory: joint 1 at '
-                             f'{away[0]:.3f} rad, 0.600 from ours and moving away at 0.50 rad/s; '
+                             f'{away[0]:.3f} rad, 0.300 from its path, the arm moving away at 0.50 rad/s; '
                              'other commanders of the arm: /intruder (action client))')
-    # After the trajectory's end ours stays at its last waypoint: pulled off it, the same.
+    # After the trajectory's end, pulled off its last waypoint: the same.
     done = SegmentExecution([0.0, 2.0], [start, goal], 10.0, 5.0, gripper_open=None)
     assert done.update(12.5, _state(goal + [0, 0.2, 0, 0, 0, 0, 0], qd=[0, 0.4, 0, 0, 0, 0, 0])).result.startswith(
-        'failed: preempted by another command (the arm left our trajectory: joint 2')
+        'failed: preempted by another command (the arm left our trajectory: joint 2 at')
 
 
 # --- the controller's state between messages ---------------------------------------------------
@@ -768,7 +772,7 @@ def test_another_command_moving_the_arm_mid_segment_fails_the_segment_preempted(
     result = facts['result']
     assert result.startswith('failed: preempted by another command ('), facts
     if interface == 'topic':            # seen in the joints; the graph names who else commands the arm
-        assert 'the arm left our trajectory: joint 1' in result and '/intruder_probe (' in result, result
+        assert 'the arm left our trajectory' in result and '/intruder_probe (' in result, result
     preempts = [s for s in facts['status'] if s.startswith('sim_bridge_node: FollowJointTrajectory goal')
                 and ' preempts ' in s]
     assert preempts, facts['status']

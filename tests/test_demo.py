@@ -360,7 +360,7 @@ def test_ctrl_c_stops_every_node_and_exits_130(tmp_path, ros_domain):
     assert proc.returncode == 130, text
     assert '[demo] SIGINT: stopped the nodes' in text
     pids = _node_pids(text)
-    assert len(pids) == 3 and not any(_alive(p) for p in pids), text
+    assert len(pids) == 4 and not any(_alive(p) for p in pids), text      # the three nodes and the manager
 
 
 def _node_log_tails(logs: Path, lines: int = 20) -> str:
@@ -379,7 +379,7 @@ def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     assert f'ROS_DOMAIN_ID={ros_domain} (from the environment)' in text
     assert re.search(r'segment 1: NBP \(.+\) gripper \w+ -> done at .+ observe\+predict [\d.]+ s', text), text
     pids = _node_pids(text)
-    assert len(pids) == 3 and not any(_alive(p) for p in pids)
+    assert len(pids) == 4 and not any(_alive(p) for p in pids)
 
     summary = json.loads((out / 'summary.json').read_text())
     episode, = summary['episodes']
@@ -387,7 +387,8 @@ def test_demo_runs_a_reach_target_episode_end_to_end(tmp_path, ros_domain):
     assert f"episode reach_target seed 1000 variation {episode['variation']}: {episode['instruction']!r}" in text
     for segment in episode['segments']:
         assert all(segment[stage] > 0 for stage in episode_log.STAGES), segment
-    assert set(episode['cpu']) == set(cli.NODES) and all(c['cpu_s'] > 0 for c in episode['cpu'].values())
+    assert set(episode['cpu']) == {*cli.NODES, 'lifecycle_manager'}
+    assert all(episode['cpu'][name]['cpu_s'] > 0 for name in cli.NODES)
     assert summary['figures']['episode_s']['n'] == 1
     with Image.open(out / episode['gif']) as gif:
         assert gif.n_frames >= 3 and gif.size == (media.GIF_WIDTH, 240)

@@ -22,12 +22,24 @@ GRIPPER_TOLERANCE = 0.002      # m of width from the target that counts as reach
 GRIPPER_MOVED = 0.001          # m of width change that shows the fingers responded
 GRIPPER_STILL_S = 0.2          # s without width change after moving: closed on an object
 GRIPPER_TIMEOUT_S = 3.0        # s for the fingers to reach the target or stop
-# Another command moves the arm: a joint this far from where our trajectory has it now (rad),
-# moving away from it faster than MOVING_AWAY (rad/s). A blocked or lagging arm is as far off,
-# but still or heading back towards ours; the sim tracks within 0.01 rad, a real JTC ~0.02.
+# Another command moves the arm: a joint this far (rad) from the nearest point of our trajectory's
+# path, the arm moving away from that point faster than MOVING_AWAY (rad/s). By the path, not by
+# where the trajectory has the arm now: a late start, a lagging or a blocked arm stay on it. The
+# sim tracks within 0.01 rad, a real JTC within a few hundredths; another trajectory moves the
+# arm at tenths of a rad/s, an arm sliding along a contact at hundredths.
 PATH_TOLERANCE = 0.1
-MOVING_AWAY = 0.1
+MOVING_AWAY = 0.2
 PREEMPTED = 'preempted by another command'      # a segment's failure reason (after 'failed: ')
+
+
+def nearest_on_path(q: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(7,) the point of the polyline through ``positions`` (N, 7) nearest to ``q`` (7,)."""
+    if len(positions) == 1:
+        return positions[0]
+    start, step = positions[:-1], np.diff(positions, axis=0)
+    along = np.einsum('ij,ij->i', q - start, step) / np.maximum(np.einsum('ij,ij->i', step, step), 1e-12)
+    points = start + np.clip(along, 0.0, 1.0)[:, None] * step
+    return points[np.argmin(np.linalg.norm(q - points, axis=1))]
 
 
 class Update(NamedTuple):
@@ -54,10 +66,9 @@ class SegmentExecution:
     where it is (``unsettled`` says how far off and how fast), as the experts carried on after
     their rest timeout, and the planner re-observes from there.
 
-    Our segment is ours: an arm that leaves our trajectory (where it has the arm now) by
-    PATH_TOLERANCE on a joint while moving away from it was moved by another command, and the
-    segment fails, PREEMPTED, at once, naming the joint and what ``commanders()`` says of who
-    may have sent it.
+    Our segment is ours: an arm that leaves our trajectory's path by PATH_TOLERANCE while moving
+    away from it was moved by another command, and the segment fails, PREEMPTED, at once, saying
+    how far and what ``commanders()`` says of who may have sent it.
     """
 
     def __init__(self, times, positions, start_s: float, timeout_s: float, gripper_open: bool | None,
@@ -79,24 +90,24 @@ class SegmentExecution:
             return self._update_arm(now_s, state)
         return self._update_gripper(now_s, state.gripper_width)
 
-    def ours_at(self, elapsed_s: float) -> np.ndarray:
-        """(7,) where our trajectory has the arm ``elapsed_s`` after its start (linear between waypoints)."""
-        return np.array([np.interp(elapsed_s, self.times, joint) for joint in self.positions.T])
-
-    def _moved_away(self, now_s: float, state: ArmState) -> str | None:
+    def _moved_away(self, state: ArmState) -> str | None:
         """Why the arm is another command's, or None."""
-        offset = state.q - self.ours_at(now_s - self.start_s)
-        away = (np.abs(offset) > PATH_TOLERANCE) & (state.qd * np.sign(offset) > MOVING_AWAY)
-        if not away.any():
+        offset = state.q - nearest_on_path(state.q, self.positions)
+        j = int(np.argmax(np.abs(offset)))
+        if abs(offset[j]) <= PATH_TOLERANCE:
             return None
-        j = int(np.argmax(np.where(away, np.abs(offset), 0.0)))
+        speed = float(state.qd @ offset) / float(np.linalg.norm(offset))
+        if speed <= MOVING_AWAY:
+            return None
+        distance = abs(offset[j])
         who = self.commanders()
         who = f'; {who}' if who else ''
         return (f'{topics.SEGMENT_FAILED}{PREEMPTED} (the arm left our trajectory: joint {j + 1} at '
-                f'{state.q[j]:.3f} rad, {abs(offset[j]):.3f} from ours and moving away at {abs(state.qd[j]):.2f} rad/s{who})')
+                f'{state.q[j]:.3f} rad, {distance:.3f} from its path, the arm moving away at {speed:.2f} '
+                f'rad/s{who})')
 
     def _update_arm(self, now_s: float, state: ArmState) -> Update:
-        preempted = self._moved_away(now_s, state)
+        preempted = self._moved_away(state)
         if preempted is not None:
             return Update(result=preempted)
         error = float(np.max(np.abs(state.q - self.goal_q)))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..launch_cli import NODES
+from ..launch_cli import MANAGER, NODES
 from .episode_log import STAGES
 
 STAGE_LABELS = {'observe_predict_s': 'observe + predict (result -> NBP)',
@@ -33,7 +33,7 @@ def figures(episodes: list[dict]) -> dict:
     out['episode_s'] = stats(e['success_s'] for e in episodes if e['success'])
     wall = sum(e['wall_s'] for e in episodes)
     cpu = {}
-    for name in NODES:
+    for name in (*NODES, MANAGER):
         spent = [e['cpu'][name]['cpu_s'] for e in episodes if name in e['cpu']]
         if spent:
             cpu[name] = {'cpu_s': round(sum(spent), 3), 'cpu_percent': round(100.0 * sum(spent) / wall, 1)}
