@@ -302,15 +302,10 @@ def _state(q, qd=None, width=0.08):
     return ArmState(np.asarray(q, float), np.zeros(7) if qd is None else np.asarray(qd, float), width)
 
 
-def _segment(goal, duration_s, start_s, timeout_s, gripper_open, **kwargs):
-    """A segment whose trajectory holds ``goal`` from start to end (where the arm goes is the test's)."""
-    from hdp_controller.execution import SegmentExecution
-    return SegmentExecution([0.0, duration_s], [goal, goal], start_s, timeout_s, gripper_open, **kwargs)
-
-
 def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_settle():
+    from hdp_controller.execution import SegmentExecution
     goal = panda.HOME + 0.2
-    run = _segment(goal, duration_s=2.0, start_s=10.0, timeout_s=5.0, gripper_open=False)
+    run = SegmentExecution(goal, duration_s=2.0, start_s=10.0, timeout_s=5.0, gripper_open=False)
     assert run.update(11.0, _state(goal)) == (False, None)                    # before the trajectory's end
     assert run.update(12.5, _state(goal + 0.05)) == (False, None)             # not there yet
     assert run.update(12.6, _state(goal, qd=np.full(7, 0.1))) == (False, None)  # there, still moving
@@ -322,70 +317,43 @@ def test_a_segment_is_done_when_the_arm_is_still_at_the_end_and_the_fingers_sett
 
 
 def test_segment_timeouts_and_no_gripper_action():
-    from hdp_controller.execution import BLOCKED_STILL_S
+    from hdp_controller.execution import BLOCKED_STILL_S, SegmentExecution
     goal = panda.HOME + 0.2
     moving = np.full(7, 0.05)
-    stuck = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    stuck = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     assert stuck.update(2.9, _state(goal + 0.1, moving)).result is None
     result = stuck.update(3.1, _state(goal + 0.1, moving)).result
     assert result.startswith('failed: the arm did not come to rest') and '0.100 rad' in result
     # carry_on (the simulated graph's choice): arrived where it is, the gripper acts, then done.
-    sliding = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=False, carry_on=True)
+    sliding = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=False, carry_on=True)
     assert sliding.update(2.9, _state(goal + 0.1, moving)) == (False, None)
     assert sliding.update(3.1, _state(goal + 0.1, moving)) == (True, None)
     assert sliding.unsettled == pytest.approx((0.1, 0.05)) and sliding.short_by is None
     assert sliding.update(3.2, _state(goal + 0.1, moving, width=0.0)) == (False, 'done')
     # Still but short (a drawer's end stop): done once it has been still for BLOCKED_STILL_S.
-    blocked = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    blocked = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     assert blocked.update(1.2, _state(goal + 0.03)).result is None
     assert blocked.update(1.2 + BLOCKED_STILL_S / 2, _state(goal + 0.03)).result is None
     assert blocked.update(1.2 + BLOCKED_STILL_S, _state(goal + 0.03)).result == 'done'
     assert blocked.short_by == pytest.approx(0.03)
     # Pressed on a stop, the velocities jitter; no progress for BLOCKED_STILL_S is what counts.
     from hdp_controller.execution import BLOCKED_BAND
-    pressed = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    pressed = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     jitter = [(goal + 0.03 + sign * BLOCKED_BAND / 3, np.full(7, 0.08 * sign)) for sign in (1, -1) * 5]
     times = 1.2 + np.arange(len(jitter)) * BLOCKED_STILL_S / 8
     results = [pressed.update(t, _state(q, qd)).result for t, (q, qd) in zip(times[:9], jitter)]
     assert results == [None] * 8 + ['done']
-    creeping = _segment(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
+    creeping = SegmentExecution(goal, 1.0, 0.0, timeout_s=2.0, gripper_open=None)
     for i, t in enumerate(np.arange(1.2, 2.9, 0.1)):                # progress of 2 band widths per 0.5 s
         assert creeping.update(t, _state(goal + 0.1 - i * BLOCKED_BAND * 0.4, moving)).result is None
-    assert _segment(goal, 1.0, 0.0, 2.0, None).update(1.5, _state(goal)) == (False, 'done')
-    dead_gripper = _segment(goal, 1.0, 0.0, 2.0, gripper_open=True)
+    assert SegmentExecution(goal, 1.0, 0.0, 2.0, None).update(1.5, _state(goal)) == (False, 'done')
+    dead_gripper = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
     assert dead_gripper.update(1.0, _state(goal, width=0.0)).send_gripper
     assert dead_gripper.update(3.0, _state(goal, width=0.0)).result is None
     assert dead_gripper.update(4.1, _state(goal, width=0.0)).result.startswith('failed: the gripper did not open')
-    opening = _segment(goal, 1.0, 0.0, 2.0, gripper_open=True)
+    opening = SegmentExecution(goal, 1.0, 0.0, 2.0, gripper_open=True)
     opening.update(1.0, _state(goal, width=0.0))
     assert opening.update(1.5, _state(goal, width=0.0795)).result == 'done'
-
-
-def test_an_arm_moved_away_from_our_trajectory_by_another_command_fails_the_segment_preempted():
-    """The probe's intruder: a FollowJointTrajectory goal from another client took joint 1 to -1.5
-    while our segment ran, and the segment was reported done, 'blocked'. Lagging behind ours (a
-    late start, a contact) or held short of it (an end stop) keeps the arm on our path; leaving
-    the path and moving away from it is preemption."""
-    from hdp_controller.execution import SegmentExecution, nearest_on_path
-    start, goal = panda.HOME, panda.HOME + np.array([0.6, 0, 0, 0, 0, 0, 0])
-    assert np.allclose(nearest_on_path(start + [0.3, 0.05, 0, 0, 0, 0, 0], np.stack([start, goal])),
-                       start + [0.3, 0, 0, 0, 0, 0, 0])
-    run = SegmentExecution([0.0, 2.0], [start, goal], 10.0, 5.0, gripper_open=None,
-                           commanders=lambda: 'other commanders of the arm: /intruder (action client)')
-    lagging = start + np.array([0.05, 0, 0, 0, 0, 0, 0])              # far behind where ours is by now
-    assert run.update(11.9, _state(lagging, qd=[0.3, 0, 0, 0, 0, 0, 0])) == (False, None)
-    assert run.update(11.9, _state(lagging)) == (False, None)          # stuck on a contact
-    off_but_coming_back = start + np.array([0.2, 0.15, 0, 0, 0, 0, 0])
-    assert run.update(11.9, _state(off_but_coming_back, qd=[0, -0.3, 0, 0, 0, 0, 0])) == (False, None)
-    away = start - np.array([0.3, 0, 0, 0, 0, 0, 0])                   # towards j1 = -1.5
-    update = run.update(11.0, _state(away, qd=[-0.5, 0, 0, 0, 0, 0, 0]))
-    assert update.result == ('failed: preempted by another command (the arm left our trajectory: joint 1 at '
-                             f'{away[0]:.3f} rad, 0.300 from its path, the arm moving away at 0.50 rad/s; '
-                             'other commanders of the arm: /intruder (action client))')
-    # After the trajectory's end, pulled off its last waypoint: the same.
-    done = SegmentExecution([0.0, 2.0], [start, goal], 10.0, 5.0, gripper_open=None)
-    assert done.update(12.5, _state(goal + [0, 0.2, 0, 0, 0, 0, 0], qd=[0, 0.4, 0, 0, 0, 0, 0])).result.startswith(
-        'failed: preempted by another command (the arm left our trajectory: joint 2 at')
 
 
 # --- the controller's state between messages ---------------------------------------------------
@@ -636,6 +604,22 @@ def test_each_segment_plans_in_the_scene_the_callable_gives():
     assert _kinds(controller.step(0.05)) == ['arm', 'info'] and default.scenes == [None]
 
 
+def test_another_command_to_the_arm_fails_the_running_segment_as_preempted():
+    """What controller_node tells its logic when a trajectory or a goal that is not its own reaches
+    the arm: the running segment fails, naming the command; with no segment running, nothing."""
+    controller = _controller()
+    assert controller.preempted('a trajectory on /arm') == []
+    goal = reachable_goal()
+    controller.on_gripper_goal(gripper_goal_msg(True, stamp_sec=3))
+    controller.on_nbp(nbp(goal[:3], goal[3:], stamp_sec=3), 0.0)
+    assert _kinds(controller.step(0.05)) == ['arm', 'info']
+    out = controller.preempted('FollowJointTrajectory goal 1a2b3c4d on /arm/follow_joint_trajectory')
+    assert _kinds(out) == ['error', 'result'] and controller.running is None
+    assert out[1].header.frame_id == ('failed: preempted by another command (FollowJointTrajectory goal 1a2b3c4d '
+                                      'on /arm/follow_joint_trajectory)')
+    assert out[1].header.stamp.sec == 3
+
+
 def test_a_segment_planning_refuses_fails_with_its_plan_report():
     controller = _controller(FakePolicy(failure='no_path'))
     goal = reachable_goal()
@@ -771,8 +755,9 @@ def test_another_command_moving_the_arm_mid_segment_fails_the_segment_preempted(
                                                   f'arm_interface:={interface}')
     result = facts['result']
     assert result.startswith('failed: preempted by another command ('), facts
-    if interface == 'topic':            # seen in the joints; the graph names who else commands the arm
-        assert 'the arm left our trajectory' in result and '/intruder_probe (' in result, result
+    if interface == 'topic':            # seen on the action's status; the graph names who else commands the arm
+        assert result.startswith('failed: preempted by another command (FollowJointTrajectory goal '), result
+        assert '/intruder_probe (/panda_arm_controller/follow_joint_trajectory client)' in result, result
     preempts = [s for s in facts['status'] if s.startswith('sim_bridge_node: FollowJointTrajectory goal')
                 and ' preempts ' in s]
     assert preempts, facts['status']
@@ -876,7 +861,7 @@ class _FakeActionClient:
     def server_is_ready(self):
         return self.ready
 
-    def send_goal_async(self, goal):
+    def send_goal_async(self, goal, goal_uuid=None):
         from rclpy.task import Future
         future = Future()
         self.goals.append((goal, future))

@@ -14,10 +14,14 @@ object is held, so results are only logged; the fingers' widths decide, as on th
 
 from __future__ import annotations
 
+import collections
+import uuid
+
 from action_msgs.msg import GoalStatus
 from control_msgs.action import FollowJointTrajectory, GripperCommand
 from control_msgs.msg import JointTolerance
 from rclpy.action import ActionClient
+from unique_identifier_msgs.msg import UUID
 
 from hdp_msgs_py import topics
 from hdp_msgs_py.conversions import seconds_to_duration, time_to_ns
@@ -36,6 +40,11 @@ class ArmAction:
         self._send, self._arm_failed = send, arm_failed       # the node's output path, the logic's hook
         self._client = ActionClient(node, FollowJointTrajectory, name)
         self._active = None                                    # (segment stamp, ClientGoalHandle or None)
+        self._goal_ids: collections.deque[bytes] = collections.deque(maxlen=16)    # ours, newest last
+
+    def owns(self, goal_id: bytes) -> bool:
+        """Whether the goal of this id (16 bytes, unique_identifier_msgs/UUID) is one we sent."""
+        return bytes(goal_id) in self._goal_ids
 
     def send(self, stamp, trajectory) -> None:
         self._cancel()
@@ -46,7 +55,10 @@ class ArmAction:
             trajectory=trajectory, goal_time_tolerance=seconds_to_duration(GOAL_TIME_TOLERANCE_S),
             goal_tolerance=[JointTolerance(name=name, position=GOAL_TOLERANCE) for name in self._joint_names])
         self._active = (stamp, None)
-        self._client.send_goal_async(goal).add_done_callback(lambda future: self._on_response(stamp, future))
+        goal_id = uuid.uuid4().bytes
+        self._goal_ids.append(goal_id)
+        self._client.send_goal_async(goal, goal_uuid=UUID(uuid=list(goal_id))).add_done_callback(
+            lambda future: self._on_response(stamp, future))
 
     def segment_ended(self, result_header) -> None:
         """A segment result went out: if it was not 'done', the segment's goal is cancelled."""

@@ -15,12 +15,14 @@ simulator, and the watchdog (hdp_ros.liveness) then fails the segment, naming th
 """
 
 
-import functools
+import collections
 import time
 
 import torch
+from action_msgs.msg import GoalStatus, GoalStatusArray
 from rclpy.action.graph import get_action_client_names_and_types_by_node
 from rclpy.clock import Clock, ClockType
+from rclpy.qos import qos_profile_action_status_default
 
 from hdp_motion import panda
 from hdp_msgs_py import topics
@@ -136,8 +138,7 @@ class ControllerNode(ros.LifecycleNode):
         warm_up_s = warm_up(policy, arm_joints, limits)    # the first segment pays no first-call cost
         self.logic = SegmentController(
             policy, needs_points=p['method'] in LEARNED, arm_joints=arm_joints,
-            finger_joints=panda.finger_joint_names(p['joint_prefix']), limits=limits,
-            commanders=functools.partial(self._other_commanders, p['arm_action']), **_segment_settings(p))
+            finger_joints=panda.finger_joint_names(p['joint_prefix']), limits=limits, **_segment_settings(p))
 
         self._arm = self.create_publisher(JointTrajectory, topics.ARM_TRAJECTORY, topics.COMMAND_QOS)
         self._gripper = self.create_publisher(JointTrajectory, topics.GRIPPER_TRAJECTORY, topics.COMMAND_QOS)
@@ -147,6 +148,15 @@ class ControllerNode(ros.LifecycleNode):
                            if p['arm_interface'] == 'action' else None)
         self.gripper_action = (GripperAction(self, p['gripper_action']) if p['gripper_interface'] == 'action'
                                else None)
+        # Our segment is ours: any other command to the arm, on its topic or as a goal of its action,
+        # ends the running segment (the arm controller follows the newest command, and says nothing).
+        self._arm_action_name = p['arm_action']
+        self._own_trajectories: collections.deque = collections.deque(maxlen=8)   # what we published
+        self._foreign_goals: set[bytes] = set()
+        self._arm_topic = self.create_subscription(JointTrajectory, topics.ARM_TRAJECTORY, self._on_arm_trajectory,
+                                                   topics.COMMAND_QOS)
+        self.create_subscription(GoalStatusArray, f"{p['arm_action']}/_action/status", self._on_arm_goals,
+                                 qos_profile_action_status_default)
         # planner_node's /hdp/stop: frame_id says why.
         self.create_subscription(Header, topics.HOLD, lambda m: self._send(self.logic.hold(m.frame_id)),
                                  topics.COMMAND_QOS)
@@ -191,16 +201,32 @@ class ControllerNode(ros.LifecycleNode):
         self.logic.configure(**_segment_settings(p))
         self.liveness.set_timeout(p['state_timeout_s'])
 
-    def _other_commanders(self, arm_action: str) -> str:
+    def _on_arm_trajectory(self, msg):
+        if not any(msg == own for own in self._own_trajectories):
+            self._send(self.logic.preempted(f'a trajectory on {self._arm_topic.topic_name}; '
+                                            f'{self._other_commanders()}'))
+
+    def _on_arm_goals(self, msg):
+        for status in msg.status_list:
+            goal_id = bytes(status.goal_info.goal_id.uuid)
+            if (status.status not in (GoalStatus.STATUS_ACCEPTED, GoalStatus.STATUS_EXECUTING)
+                    or goal_id in self._foreign_goals
+                    or (self.arm_action is not None and self.arm_action.owns(goal_id))):
+                continue
+            self._foreign_goals.add(goal_id)
+            self._send(self.logic.preempted(f'FollowJointTrajectory goal {goal_id.hex()[:8]} on '
+                                            f'{self._arm_action_name}; {self._other_commanders()}'))
+
+    def _other_commanders(self) -> str:
         """Who else may command the arm, from the ROS graph: other publishers of its trajectory
         topic and other clients of its FollowJointTrajectory action."""
         me = self.get_fully_qualified_name()
-        found = {f'{_qualified(i.node_namespace, i.node_name)} ({topics.ARM_TRAJECTORY})'
-                 for i in self.get_publishers_info_by_topic(topics.ARM_TRAJECTORY)}
+        found = {f'{_qualified(i.node_namespace, i.node_name)} ({self._arm_topic.topic_name})'
+                 for i in self.get_publishers_info_by_topic(self._arm_topic.topic_name)}
         for name, namespace in self.get_node_names_and_namespaces():
             clients = get_action_client_names_and_types_by_node(self, name, namespace)
-            if any(action == arm_action for action, _ in clients):
-                found.add(f'{_qualified(namespace, name)} ({arm_action} client)')
+            if any(action == self._arm_action_name for action, _ in clients):
+                found.add(f'{_qualified(namespace, name)} ({self._arm_action_name} client)')
         found = sorted(f for f in found if not f.startswith(me + ' '))
         return f'other commanders of the arm: {", ".join(found)}' if found else 'no other commander on the ROS graph'
 
@@ -266,6 +292,10 @@ class ControllerNode(ros.LifecycleNode):
         self._send([StatusLine(f'refused segment: {why}', error=True),
                     SegmentResult(Header(stamp=msg.header.stamp, frame_id=topics.SEGMENT_FAILED + why))])
 
+    def _publish_arm(self, trajectory) -> None:
+        self._own_trajectories.append(trajectory)       # our own copy comes back to _on_arm_trajectory
+        self._arm.publish(trajectory)
+
     def _send(self, outputs):
         for out in outputs:
             match out:
@@ -276,11 +306,11 @@ class ControllerNode(ros.LifecycleNode):
                     if self.arm_action is not None:
                         self.arm_action.send(out.stamp, out.trajectory)
                     else:
-                        self._arm.publish(out.trajectory)
+                        self._publish_arm(out.trajectory)
                 case HoldArm() if self.arm_action is not None:
                     self.arm_action.cancel()
                 case HoldArm() if out.trajectory is not None:
-                    self._arm.publish(out.trajectory)
+                    self._publish_arm(out.trajectory)
                 case FingerCommand() if self.gripper_action is not None:
                     self.gripper_action.send(out.trajectory)
                 case FingerCommand():

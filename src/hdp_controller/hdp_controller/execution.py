@@ -22,24 +22,7 @@ GRIPPER_TOLERANCE = 0.002      # m of width from the target that counts as reach
 GRIPPER_MOVED = 0.001          # m of width change that shows the fingers responded
 GRIPPER_STILL_S = 0.2          # s without width change after moving: closed on an object
 GRIPPER_TIMEOUT_S = 3.0        # s for the fingers to reach the target or stop
-# Another command moves the arm: a joint this far (rad) from the nearest point of our trajectory's
-# path, the arm moving away from that point faster than MOVING_AWAY (rad/s). By the path, not by
-# where the trajectory has the arm now: a late start, a lagging or a blocked arm stay on it. The
-# sim tracks within 0.01 rad, a real JTC within a few hundredths; another trajectory moves the
-# arm at tenths of a rad/s, an arm sliding along a contact at hundredths.
-PATH_TOLERANCE = 0.1
-MOVING_AWAY = 0.2
 PREEMPTED = 'preempted by another command'      # a segment's failure reason (after 'failed: ')
-
-
-def nearest_on_path(q: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """(7,) the point of the polyline through ``positions`` (N, 7) nearest to ``q`` (7,)."""
-    if len(positions) == 1:
-        return positions[0]
-    start, step = positions[:-1], np.diff(positions, axis=0)
-    along = np.einsum('ij,ij->i', q - start, step) / np.maximum(np.einsum('ij,ij->i', step, step), 1e-12)
-    points = start + np.clip(along, 0.0, 1.0)[:, None] * step
-    return points[np.argmin(np.linalg.norm(q - points, axis=1))]
 
 
 class Update(NamedTuple):
@@ -50,7 +33,7 @@ class Update(NamedTuple):
 class SegmentExecution:
     """Follows one published segment: arm arrival, then the gripper action, then the result.
 
-    times: (N,) the trajectory's time_from_start (s); positions: (N, 7) its waypoints.
+    goal_q: (7,) the trajectory's last waypoint. duration_s: its time_from_start.
     timeout_s: time after the trajectory's end for the arm to settle.
     gripper_open: the action after arriving, or None to leave the gripper as it is.
     Times are seconds on the node's clock (sim time under use_sim_time).
@@ -65,17 +48,12 @@ class SegmentExecution:
     lid it presses on, say) fails the segment, unless ``carry_on``: then it counts as arrived
     where it is (``unsettled`` says how far off and how fast), as the experts carried on after
     their rest timeout, and the planner re-observes from there.
-
-    Our segment is ours: an arm that leaves our trajectory's path by PATH_TOLERANCE while moving
-    away from it was moved by another command, and the segment fails, PREEMPTED, at once, saying
-    how far and what ``commanders()`` says of who may have sent it.
     """
 
-    def __init__(self, times, positions, start_s: float, timeout_s: float, gripper_open: bool | None,
-                 carry_on: bool = False, commanders=lambda: ''):
-        self.times, self.positions = np.asarray(times, dtype=float), np.asarray(positions, dtype=float)
-        self.goal_q, self.duration_s = self.positions[-1], float(self.times[-1])
-        self.start_s, self.timeout_s, self.commanders = start_s, timeout_s, commanders
+    def __init__(self, goal_q, duration_s: float, start_s: float, timeout_s: float, gripper_open: bool | None,
+                 carry_on: bool = False):
+        self.goal_q = np.asarray(goal_q, dtype=float)
+        self.duration_s, self.start_s, self.timeout_s = duration_s, start_s, timeout_s
         self.carry_on = carry_on
         self.unsettled: tuple[float, float] | None = None           # (joint error rad, speed rad/s) on carrying on
         self.gripper_open = gripper_open
@@ -90,26 +68,7 @@ class SegmentExecution:
             return self._update_arm(now_s, state)
         return self._update_gripper(now_s, state.gripper_width)
 
-    def _moved_away(self, state: ArmState) -> str | None:
-        """Why the arm is another command's, or None."""
-        offset = state.q - nearest_on_path(state.q, self.positions)
-        j = int(np.argmax(np.abs(offset)))
-        if abs(offset[j]) <= PATH_TOLERANCE:
-            return None
-        speed = float(state.qd @ offset) / float(np.linalg.norm(offset))
-        if speed <= MOVING_AWAY:
-            return None
-        distance = abs(offset[j])
-        who = self.commanders()
-        who = f'; {who}' if who else ''
-        return (f'{topics.SEGMENT_FAILED}{PREEMPTED} (the arm left our trajectory: joint {j + 1} at '
-                f'{state.q[j]:.3f} rad, {distance:.3f} from its path, the arm moving away at {speed:.2f} '
-                f'rad/s{who})')
-
     def _update_arm(self, now_s: float, state: ArmState) -> Update:
-        preempted = self._moved_away(state)
-        if preempted is not None:
-            return Update(result=preempted)
         error = float(np.max(np.abs(state.q - self.goal_q)))
         speed = float(np.max(np.abs(state.qd)))
         elapsed = now_s - self.start_s

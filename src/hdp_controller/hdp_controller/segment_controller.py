@@ -7,7 +7,9 @@ One segment at a time (the protocol is in the package README):
 2. The latest /joint_states (and, for learned methods, the front camera's points) make the
    SegmentRequest, which segment_planning turns into a timed JointTrajectory, or refuses.
 3. ``SegmentExecution`` (execution) follows the published trajectory: the arm at its last
-   waypoint and still, then the gripper command and the fingers settling, then 'done'.
+   waypoint and still, then the gripper command and the fingers settling, then 'done'. Another
+   command to the arm meanwhile (the node watches the arm's topic and action) ends it
+   'failed: preempted by another command (...)'.
 
 ``SegmentController`` holds that state. Every method returns what to publish, as records:
 ArmCommand, FingerCommand, HoldArm, SegmentResult and StatusLine. A refusal is a status line and a
@@ -27,7 +29,7 @@ from hdp_msgs_py.conversions import time_to_ns
 from hdp_msgs_py.msg import Header, JointTrajectory, Time
 from hdp_msgs_py.outcome import StatusLine
 
-from .execution import SegmentExecution
+from .execution import PREEMPTED, SegmentExecution
 from .inputs import ArmState, SegmentRefused, arm_state, gripper_goal, validate_nbp, world_transform
 from .observation import points_from_messages
 from .segment_planning import (PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, PlanReport, plan_segment,
@@ -98,9 +100,6 @@ class SegmentController:
     moved on (it stopped waiting, or the simulator was reset for a new episode, restarting sim
     time): the new NBP supersedes that segment, which ends 'failed: superseded by ...'.
 
-    commanders: a callable naming who else may command the arm (the node asks the ROS graph),
-    for a segment that another command preempts (execution.PREEMPTED).
-
     scene: a callable giving the planning baselines' collision scene for each segment (a
     simulator's, in the evaluations); None lets them build their own, as on a robot.
     """
@@ -109,10 +108,8 @@ class SegmentController:
                  arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS,
                  reach_tolerance: tuple[float, float] | None = (REACH_TOLERANCE_M, REACH_TOLERANCE_DEG),
                  limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'], carry_on_unsettled: bool = False,
-                 plan_attempts: int = PLAN_ATTEMPTS, scene: Callable | None = None,
-                 commanders: Callable[[], str] = lambda: ''):
+                 plan_attempts: int = PLAN_ATTEMPTS, scene: Callable | None = None):
         self.policy, self.needs_points, self.limits, self.scene = policy, needs_points, limits, scene
-        self.commanders = commanders
         self.configure(velocity_scale, segment_timeout_s, reach_tolerance, plan_attempts, carry_on_unsettled)
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
         self.state: ArmState | None = None
@@ -225,18 +222,24 @@ class SegmentController:
                                               self.scene() if self.scene is not None else None)
         except SegmentRefused as err:
             return out + self._refuse(stamp, str(err), plan=err.report)
-        times = [conversions.duration_to_seconds(point.time_from_start) for point in trajectory.points]
-        duration = times[-1]
+        duration = conversions.duration_to_seconds(trajectory.points[-1].time_from_start)
         act = goal_open if goal_open is not None and goal_open != is_open else None
-        self.running = (stamp, SegmentExecution(times, [point.positions for point in trajectory.points], now_s,
-                                                self.segment_timeout_s, act, self.carry_on_unsettled,
-                                                self.commanders))
+        self.running = (stamp, SegmentExecution(np.asarray(trajectory.points[-1].positions), duration, now_s,
+                                                self.segment_timeout_s, act, self.carry_on_unsettled))
         x, y, z = pending.goal[:3]
         gripper = '' if act is None else f', then {"open" if act else "close"} the gripper'
         return out + [ArmCommand(stamp, trajectory, report), StatusLine(
             f'segment {stamp_label(stamp)}: {self.policy.name} to ({x:.3f}, {y:.3f}, {z:.3f}): '
             f'{len(trajectory.points)} points over {duration:.2f} s{gripper} (planned in {report.seconds:.2f} s, '
             f'{report.draws} draw{"s" if report.draws > 1 else ""})')]
+
+    def preempted(self, command: str) -> list:
+        """Another command (``command`` says what and from whom) took the arm: the running segment
+        fails as preempted; nothing is held, the arm is the other command's now."""
+        if self.running is None:
+            return []
+        stamp, self.running = self.running[0], None
+        return self._refuse(stamp, f'{PREEMPTED} ({command})', 'segment {} failed')
 
     def arm_failed(self, stamp, why: str) -> list:
         """The arm controller refused or aborted segment ``stamp``'s trajectory (the action

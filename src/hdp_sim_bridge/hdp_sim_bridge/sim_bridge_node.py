@@ -247,9 +247,10 @@ class SimBridgeNode(ros.Node):
         while True:
             await self._next_tick()
             if goal_handle.is_cancel_requested:
-                self.bridge.hold()
+                if self.bridge.trajectory is active:      # a superseded goal's cancel leaves the arm alone
+                    self.bridge.hold()
+                    self.status.info('arm goal cancelled: holding where the arm is')
                 goal_handle.canceled()
-                self.status.info('arm goal cancelled: holding where the arm is')
                 return result
             state = self.bridge.arm_goal_state(active, tolerance, time_tolerance)
             if state == 'succeeded':
