@@ -12,28 +12,154 @@ import xml.etree.ElementTree as ElementTree
 
 import pytest
 
-from hdp_ros import ros, shm
+from hdp_ros import fastdds, ros, shm
 from test_dds_processes import finish, start
 
 pytestmark = pytest.mark.unit
 
 
+NS = {'f': fastdds.NAMESPACE}
+
+
 def test_the_localhost_profile_is_applied_by_default():
     environ = {'ROS_DOMAIN_ID': '7'}
-    assert ros.use_localhost_profile(environ)
+    assert ros.use_project_profile(environ) == 'localhost'
     assert environ == {'ROS_DOMAIN_ID': '7', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SYSTEM_DEFAULT',
                        'FASTRTPS_DEFAULT_PROFILES_FILE': str(ros.FASTDDS_LOCALHOST_PROFILE)}
-    assert ros.use_localhost_profile({'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'})
+    assert ros.use_project_profile({'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}) == 'localhost'
 
 
 @pytest.mark.parametrize('choice', [
-    {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}, {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'OFF'},
-    {'ROS_STATIC_PEERS': '192.168.1.7'}, {'FASTRTPS_DEFAULT_PROFILES_FILE': '/etc/mine.xml'},
-    {'FASTDDS_DEFAULT_PROFILES_FILE': '/etc/mine.xml'}, {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}])
+    {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'OFF'}, {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SYSTEM_DEFAULT'},
+    {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'OFF', 'ROS_STATIC_PEERS': '192.168.1.7'},
+    {'FASTRTPS_DEFAULT_PROFILES_FILE': '/etc/mine.xml'}, {'FASTDDS_DEFAULT_PROFILES_FILE': '/etc/mine.xml'},
+    {'ROS_DISCOVERY_SERVER': '10.0.0.1:11811'}, {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'},
+    {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}])
 def test_a_users_own_middleware_choice_is_left_alone(choice):
     environ = dict(choice)
-    assert not ros.use_localhost_profile(environ)
+    assert ros.use_project_profile(environ) is None
     assert environ == choice
+
+
+def _network(environ) -> ElementTree.Element:
+    assert ros.use_project_profile(environ) == 'network'
+    assert environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SYSTEM_DEFAULT'     # rmw takes the file as it is
+    return ElementTree.parse(environ['FASTRTPS_DEFAULT_PROFILES_FILE']).getroot()
+
+
+def _initial_peers(root) -> list[str]:
+    return [a.text for a in root.findall('.//f:initialPeersList/f:locator/f:udpv4/f:address', NS)]
+
+
+def test_static_peers_get_the_network_profile_unicast_only(tmp_path):
+    root = _network({'ROS_STATIC_PEERS': '10.0.0.2; localhost;10.0.0.3', 'XDG_RUNTIME_DIR': str(tmp_path)})
+    assert _initial_peers(root) == ['127.0.0.1', '10.0.0.2', '10.0.0.3']
+    # An empty unicast locator: no multicast listening, as rmw_fastrtps_cpp's LOCALHOST range.
+    assert root.find('.//f:builtin/f:metatrafficUnicastLocatorList/f:locator', NS) is not None
+    assert int(root.find('.//f:transport_descriptor[f:type="SHM"]/f:segment_size', NS).text) > 640 * 480 * 3 * 4
+    assert not root.findall('.//f:interfaceWhiteList', NS)                 # every interface
+    lease = root.find('.//f:leaseAnnouncement', NS)
+    assert (lease.findtext('f:sec', namespaces=NS), lease.findtext('f:nanosec', namespaces=NS)) == ('0', '500000000')
+
+
+@pytest.mark.parametrize('peers, expected', [('', ['127.0.0.1', '239.255.0.1']),
+                                             ('10.0.0.2', ['127.0.0.1', '10.0.0.2', '239.255.0.1'])])
+def test_subnet_gets_the_network_profile_with_multicast(tmp_path, peers, expected):
+    root = _network({'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET', 'ROS_STATIC_PEERS': peers,
+                     'XDG_RUNTIME_DIR': str(tmp_path)})
+    assert _initial_peers(root) == expected
+    assert root.find('.//f:builtin/f:metatrafficUnicastLocatorList', NS) is None
+
+
+def test_a_child_keeps_the_profile_its_parent_chose(tmp_path):
+    parent = {'ROS_STATIC_PEERS': '10.0.0.2', 'XDG_RUNTIME_DIR': str(tmp_path)}
+    ros.use_project_profile(parent)
+    child = dict(parent)
+    assert ros.use_project_profile(child) is None and child == parent
+    again = {'ROS_STATIC_PEERS': '10.0.0.2', 'XDG_RUNTIME_DIR': str(tmp_path)}
+    ros.use_project_profile(again)
+    assert again == parent                 # the same set-up, the same file
+
+
+def test_a_static_peer_that_does_not_resolve_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="ROS_STATIC_PEERS: cannot resolve 'no-such-host.invalid'"):
+        ros.use_project_profile({'ROS_STATIC_PEERS': 'no-such-host.invalid', 'XDG_RUNTIME_DIR': str(tmp_path)})
+
+
+def test_profiles_are_written_only_where_no_one_else_can_write(tmp_path):
+    (tmp_path / 'hdp').mkdir(mode=0o777)
+    (tmp_path / 'hdp').chmod(0o777)
+    with pytest.raises(PermissionError, match='others cannot write'):
+        ros.use_project_profile({'ROS_STATIC_PEERS': '10.0.0.2', 'XDG_RUNTIME_DIR': str(tmp_path)})
+
+
+@pytest.fixture
+def credentials(tmp_path):
+    """A host's credential files as `hdp dds credentials` names them (empty: only their presence counts here)."""
+    folder = tmp_path / 'robot'
+    folder.mkdir()
+    for name in fastdds.TLS_FILES.values():
+        (folder / name).touch()
+    return folder
+
+
+def _tls_environ(credentials, **more) -> dict:
+    return {'HDP_DDS_TLS_DIR': str(credentials), 'HDP_DDS_DISCOVERY_SERVER': '10.0.0.1:42111',
+            'XDG_RUNTIME_DIR': str(credentials.parent), **more}
+
+
+def test_the_tls_profile_is_a_discovery_client_over_tls_alone(credentials):
+    environ = _tls_environ(credentials, ROS_STATIC_PEERS='10.0.0.2', ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET')
+    assert ros.use_project_profile(environ) == 'tls'
+    assert environ['OPENSSL_CONF'] == str(fastdds.REQUIRE_PEER_CERTIFICATE)
+    assert environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SYSTEM_DEFAULT'
+    root = ElementTree.parse(environ['FASTRTPS_DEFAULT_PROFILES_FILE']).getroot()
+    transport, = root.findall('.//f:transport_descriptor', NS)
+    assert transport.findtext('f:type', namespaces=NS) == 'TCPv4'
+    assert transport.findtext('f:listening_ports/f:port', namespaces=NS) == '0'
+    assert {element: transport.findtext(f'f:tls/f:{element}', namespaces=NS) for element in fastdds.TLS_FILES} == {
+        element: str(credentials / name) for element, name in fastdds.TLS_FILES.items()}
+    assert root.findtext('.//f:useBuiltinTransports', namespaces=NS) == 'false'
+    assert root.findtext('.//f:discoveryProtocol', namespaces=NS) == 'CLIENT'
+    server = root.find('.//f:RemoteServer//f:tcpv4', NS)
+    assert [server.findtext(f'f:{n}', namespaces=NS) for n in ('address', 'physical_port', 'port')] == [
+        '10.0.0.1', '42111', '42111']
+    assert not root.findall('.//f:initialPeersList', NS)            # the static peers play no part
+
+
+def test_the_discovery_servers_profile_listens_on_its_port(credentials):
+    settings = fastdds.tls_settings(_tls_environ(credentials))
+    root = ElementTree.fromstring(fastdds.tls_profile(settings, server=True))
+    assert root.findtext('.//f:listening_ports/f:port', namespaces=NS) == '42111'
+    assert root.findtext('.//f:discoveryProtocol', namespaces=NS) == 'SERVER'
+    assert root.findtext('.//f:rtps/f:prefix', namespaces=NS) == '44.53.00.5f.45.50.52.4f.53.49.4d.41'
+    assert root.find('.//f:builtin/f:metatrafficUnicastLocatorList//f:tcpv4/f:address', NS).text == '10.0.0.1'
+    assert root.find('.//f:discoveryServersList', NS) is None
+
+
+@pytest.mark.parametrize('change, why', [
+    ({'HDP_DDS_DISCOVERY_SERVER': None}, 'needs both'),
+    ({'HDP_DDS_DISCOVERY_SERVER': '10.0.0.1:port'}, 'must be a number'),
+    ({'FASTRTPS_DEFAULT_PROFILES_FILE': '/etc/mine.xml'}, 'FASTRTPS_DEFAULT_PROFILES_FILE set up Fast DDS otherwise'),
+    ({'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}, 'unset RMW_IMPLEMENTATION')])
+def test_a_tls_set_up_that_would_not_be_tls_is_refused(credentials, change, why):
+    environ = {name: value for name, value in {**_tls_environ(credentials), **change}.items() if value}
+    with pytest.raises(ValueError, match=why):
+        ros.use_project_profile(environ)
+
+
+def test_tls_without_its_credentials_is_refused(credentials):
+    (credentials / 'key.pem').unlink()
+    with pytest.raises(ValueError, match='lacks key.pem'):
+        ros.use_project_profile(_tls_environ(credentials))
+
+
+def test_a_child_keeps_the_tls_profile_its_parent_chose(credentials):
+    parent = _tls_environ(credentials)
+    ros.use_project_profile(parent)
+    child = dict(parent, OPENSSL_CONF='/elsewhere.cnf')
+    assert ros.use_project_profile(child) == 'tls'
+    assert child == parent
 
 
 def test_the_profile_keeps_to_loopback_with_a_segment_that_holds_a_camera_frame():

@@ -6,8 +6,8 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test']),
-    # The Fast DDS profile ros.init() applies travels with the code.
-    package_data={package_name: ['config/*.xml']},
+    # The Fast DDS profiles ros.init() applies (and the OpenSSL settings of the TLS one) travel with the code.
+    package_data={package_name: ['config/*.xml', 'config/*.cnf']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -19,4 +19,11 @@ setup(
     maintainer_email='hdp-ros@example.com',
     description='What every HDP-ROS node adds to rclpy: the Fast DDS profile, Node, Status, run, liveness',
     license='Apache-2.0',
+    entry_points={
+        'hdp.commands': [
+            'dds.credentials = hdp_ros.dds_cli:configure_credentials',
+            'dds.server = hdp_ros.dds_cli:configure_server',
+            'dds.env = hdp_ros.dds_cli:configure_env',
+        ],
+    },
 )
