@@ -46,6 +46,7 @@ setup(
             'demo = hdp_bringup.demo.cli:configure',
             'bench.soak = hdp_bringup.soak:configure',
             'bench.stop = hdp_bringup.stop_bench:configure',
+            'bench.link = hdp_bringup.link_bench:configure',
         ],
     },
 )
