@@ -1,4 +1,5 @@
-"""What controller_node takes in, validated: NBPs, gripper goals, joint states, camera extrinsics.
+"""What controller_node takes in, validated: NBPs, gripper goals, joint states, camera extrinsics,
+and the front camera's depth, filtered when a depth filter is on.
 
 Each reader returns plain values or raises with a reason a person can act on; a refused NBP
 goes back to the planner as 'failed: <reason>' (SegmentRefused).
@@ -12,6 +13,7 @@ import numpy as np
 
 from hdp_motion import panda
 from hdp_data import workspace
+from hdp_data.depth_filters import DepthFilter, FilterSettings
 from hdp_msgs_py import conversions, topics
 
 
@@ -82,3 +84,25 @@ def world_transform(transforms: dict, frame: str):
         raise SegmentRefused(f"/tf_static gives {frame!r} in {transform.header.frame_id!r}, "
                              f"not {topics.NBP_FRAME!r}")
     return transform
+
+
+class FilteredDepth:
+    """The front camera's depth images through a RealSense post-processing chain
+    (hdp_data.depth_filters), for SegmentController.on_depth: feed it every camera_info and depth
+    image as they come, and hand on what ``filtered`` returns."""
+
+    def __init__(self, settings: FilterSettings):
+        self.depth_filter = DepthFilter(settings)
+        self.info = None
+
+    def on_camera_info(self, msg) -> None:
+        self.info = msg
+
+    def filtered(self, msg):
+        """The depth Image filtered (its header, 16UC1 mm), or None before the first camera_info:
+        the chain needs the focal length. ValueError when the depth is not 16UC1."""
+        if self.info is None:
+            return None
+        depth = self.depth_filter.apply(conversions.image_to_numpy(msg), float(self.info.k[0]),
+                                        conversions.time_to_ns(msg.header.stamp))
+        return conversions.numpy_to_image(depth, '16UC1', msg.header)

@@ -37,6 +37,7 @@ def configure(parser) -> None:
                         'per rank: the ranks share the episodes and rank 0 prints and writes the result')
     parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     add_sensor_arguments(parser, graph=False)
+    add_depth_filter_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -58,6 +59,20 @@ def add_sensor_arguments(parser, graph: bool) -> None:
         parser.add_argument('--camera-hz', type=float, default=None, metavar='HZ',
                             help='camera frames per sim second for the hierarchical rows (a D415 streams 6, 15 '
                                  "or 30; default: the graph's 2)")
+
+
+def add_depth_filter_argument(parser) -> None:
+    """What the learned levels do with the depth they read (hdp_data.depth_filters)."""
+    parser.add_argument('--depth-filter', choices=('off', 'realsense'), default='off',
+                        help="post-processing of every camera's depth before the learned levels read it: off "
+                             "(default) or realsense, librealsense's spatial, temporal and hole-filling chain "
+                             "with Intel's defaults")
+
+
+def depth_filter_settings(args):
+    """The FilterSettings --depth-filter names; None for off."""
+    from hdp_data.depth_filters import preset
+    return preset(args.depth_filter)
 
 
 def sensor_settings(args):
@@ -105,13 +120,14 @@ def run(args) -> int:
     if args.rkd_draws is not None:
         sampling['draws'] = args.rkd_draws
     names = _names(args.methods, METHODS, 'method')
-    sensor = sensor_settings(args)
+    sensor, depth_filter = sensor_settings(args), depth_filter_settings(args)
     start = time.monotonic()
     try:
         device = distributed.start(distributed.torch_device(args.device))[2]     # each rank its own GPU
         methods = {name: load_policy(name, args.checkpoint, args.sampler, device=device, **sampling)
                    for name in names}
-        results = evaluate(methods, tasks, args.episodes, args.seed_start, args.workers, sensor=sensor)
+        results = evaluate(methods, tasks, args.episodes, args.seed_start, args.workers, sensor=sensor,
+                           depth_filter=depth_filter)
     except ValueError as err:
         print(err, file=sys.stderr)
         return 1
@@ -122,7 +138,8 @@ def run(args) -> int:
     if skipped:
         print(f'\nSkipped (the expert failed, so there are no oracle NBPs): {skipped}')
     print(f'\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {args.workers} worker(s), '
-          f'{(time.monotonic() - start) / 60:.1f} min; front camera: {sensor.summary()}')
+          f'{(time.monotonic() - start) / 60:.1f} min; front camera: {sensor.summary()}, '
+          f'depth filter {args.depth_filter}')
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
@@ -205,6 +222,7 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
     parser.add_argument('--json', type=Path, help='also write the results here')
     add_sensor_arguments(parser, graph=True)
+    add_depth_filter_argument(parser)
     parser.set_defaults(func=run_hierarchy)
 
 
@@ -267,7 +285,7 @@ def run_hierarchy(args) -> int:
         cameras = {} if args.camera_hz is None else {'camera_hz': args.camera_hz}
         settings = GraphSettings(max_segments=args.max_segments, min_confidence=min_confidence,
                                  reach_tolerance=reach_tolerance, plan_attempts=plan_attempts, think_s=args.think_s,
-                                 sensor=sensor, **cameras)
+                                 sensor=sensor, depth_filter=depth_filter_settings(args), **cameras)
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, settings, flat=flat,
                            flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras)
     except ValueError as err:
@@ -279,7 +297,7 @@ def run_hierarchy(args) -> int:
     first, last = results['seeds']
     print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}; "
           f"{results['wall_s'] / 60:.1f} min, {results['processes']} process(es); cameras at "
-          f"{settings.camera_hz:g} Hz, {sensor.summary()}")
+          f"{settings.camera_hz:g} Hz, {sensor.summary()}, depth filter {args.depth_filter}")
     if 'flat' in results:
         cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
         print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "

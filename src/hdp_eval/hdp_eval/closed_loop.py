@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import dataclasses
 
+from hdp_controller.inputs import FilteredDepth
 from hdp_controller.segment_controller import ArmCommand, FingerCommand, SegmentController, SegmentResult
 from hdp_controller.segment_planning import PLAN_ATTEMPTS, REACH_TOLERANCE_DEG, REACH_TOLERANCE_M, PlanReport
 from hdp_controller.trajectory import VELOCITY_SCALE
+from hdp_data.depth_filters import FilterSettings
 from hdp_msgs_py.outcome import Outcome, StatusLine
 from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, Observations, PlannerLoop, Prediction, SegmentGoal
 from hdp_sim_bridge.bridge import SimBridge
@@ -51,6 +53,8 @@ class GraphSettings:
     think_s: float = 0.0
     # sim_bridge_node's sensor_profile, extrinsic_error_mm/_deg and latency_ms; the bridge is built with it
     sensor: SensorSettings = dataclasses.field(default_factory=SensorSettings)
+    # the depth filter both learned nodes run on their cameras' depth (hdp_data.depth_filters); None: off
+    depth_filter: FilterSettings | None = None
 
 
 @dataclasses.dataclass
@@ -80,13 +84,14 @@ class InProcessGraph:
     def __init__(self, bridge: SimBridge, agent, policy, needs_points: bool, settings: GraphSettings,
                  scene=None):
         self.bridge, self.settings = bridge, settings
-        self.observations = Observations()        # as planner_node: it fills them, the loop reads them
+        self.observations = Observations(depth_filter=settings.depth_filter)   # as planner_node: it fills them
         self.planner = PlannerLoop(agent, agent.vocabulary, settings.max_segments, settings.camera_timeout_s,
                                    settings.result_timeout_s, self.observations, settings.min_confidence)
         self.controller = SegmentController(
             policy, needs_points=needs_points, velocity_scale=settings.velocity_scale,
             segment_timeout_s=settings.segment_timeout_s, reach_tolerance=settings.reach_tolerance,
             carry_on_unsettled=settings.carry_on_unsettled, plan_attempts=settings.plan_attempts, scene=scene)
+        self.controller_depth = None if settings.depth_filter is None else FilteredDepth(settings.depth_filter)
         self.log = EpisodeLog()
         self._held_back: list[tuple[float, ArmCommand]] = []      # trajectories due after think_s
         self._steps = 0
@@ -139,11 +144,14 @@ class InProcessGraph:
         """The frames the bridge exposed that are due now (at once, or the sensor's latency later)."""
         for name, (color, depth, info) in self.bridge.delivered():
             self.observations.on_color(name, color)
+            self.observations.on_info(name, info)      # first: a depth filter needs the focal length
             self.observations.on_depth(name, depth)
-            self.observations.on_info(name, info)
             if name == CONTROLLER_CAMERA:
-                self.controller.on_depth(depth)
                 self.controller.on_camera_info(info)
+                if self.controller_depth is not None:
+                    self.controller_depth.on_camera_info(info)
+                    depth = self.controller_depth.filtered(depth)
+                self.controller.on_depth(depth)
 
     # -- the nodes' publications -------------------------------------------------------------
     def _from_planner(self, outputs) -> None:

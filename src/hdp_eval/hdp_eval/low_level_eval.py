@@ -32,6 +32,7 @@ from hdp_motion import panda
 from hdp_motion.rotations import quat_angle
 from hdp_learning import distributed
 from hdp_msgs_py import conversions
+from hdp_data.depth_filters import DepthFilter, FilterSettings
 from hdp_data.keyframes import discover_keyframes
 from hdp_sim_bridge import experts
 from hdp_sim_bridge.cameras import CameraRig
@@ -167,7 +168,8 @@ def execute_segment(world, task, joints, was_open: bool, goal_open: bool,
 
 def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points: int = N_POINTS,
                 world: PandaWorld | None = None, config: experts.ExpertConfig | None = None,
-                name: str | None = None, sensor: SensorSettings = SensorSettings()) -> EpisodeRecord:
+                name: str | None = None, sensor: SensorSettings = SensorSettings(),
+                depth_filter: FilterSettings | None = None) -> EpisodeRecord:
     """Replay ``oracle``'s NBPs with ``policy`` on the same scene; see the module docstring.
 
     camera_size: (width, height) of the front camera, the training data's by default.
@@ -175,10 +177,12 @@ def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points
     name: the record's method (default policy.name), when one policy runs under several names.
     sensor: the front camera's sensor model and calibration error (its latency does not apply: the
     arm is at rest when each segment's frame is taken); ideal by default.
+    depth_filter: the post-processing chain the front depth goes through (hdp_data.depth_filters),
+    one per episode, its temporal history over the episode's frames; None: off.
     """
     if world is None:
         with PandaWorld() as own:
-            return run_episode(policy, oracle, camera_size, n_points, own, config, name, sensor)
+            return run_episode(policy, oracle, camera_size, n_points, own, config, name, sensor, depth_filter)
     config = config or experts.ExpertConfig()
     task, _, _ = experts.reachable_scene(world, oracle.task, oracle.seed)
     start_episode(policy, oracle.seed)
@@ -186,9 +190,10 @@ def run_episode(policy, oracle: OracleEpisode, camera_size=CAMERA_SIZE, n_points
     rig = CameraRig({camera.name: camera}, sensor)
     rig.start_episode(oracle.seed)                # the same frames for every method
     rng = np.random.default_rng(oracle.seed)      # point subsampling: the same for every method
+    camera_filter = None if depth_filter is None else DepthFilter(depth_filter)
     record = EpisodeRecord(name or policy.name, oracle.task, oracle.seed)
     for segment, (goal_pose, goal_open) in enumerate(oracle.nbps):
-        points = front_points(world, camera, n_points, rng, rig, frame=segment)
+        points = front_points(world, camera, n_points, rng, rig, frame=segment, depth_filter=camera_filter)
         request = segment_request(world, goal_pose, goal_open, points)
         try:
             trajectory, report = plan_segment(policy, request, panda.ARM_JOINTS, config.velocity_scale,
@@ -242,8 +247,9 @@ def _oracle_job(job, methods, world) -> OracleEpisode:
 
 
 def _episode_job(job, methods, world) -> EpisodeRecord:
-    name, oracle, camera_size, n_points, sensor = job
-    return run_episode(methods[name], oracle, camera_size, n_points, world, name=name, sensor=sensor)
+    name, oracle, camera_size, n_points, sensor, depth_filter = job
+    return run_episode(methods[name], oracle, camera_size, n_points, world, name=name, sensor=sensor,
+                       depth_filter=depth_filter)
 
 
 _worker: dict = {}       # per worker process: the methods and a world kept between episodes
@@ -273,9 +279,10 @@ def _job_runner(methods: dict, workers: int):
 
 def evaluate(methods: dict, tasks, episodes: int, seed_start: int, workers: int = 1,
              camera_size=CAMERA_SIZE, n_points: int = N_POINTS, progress: bool = True,
-             sensor: SensorSettings = SensorSettings()) -> dict:
+             sensor: SensorSettings = SensorSettings(), depth_filter: FilterSettings | None = None) -> dict:
     """Every method on the same oracle episodes: seeds seed_start .. seed_start + episodes - 1 per task.
-    sensor: the front camera's sensor model and calibration error (run_episode).
+    sensor: the front camera's sensor model and calibration error; depth_filter: the chain its depth
+    goes through, None for none (run_episode).
 
     methods: name -> LowLevelPolicy. Returns a JSON-able dict: per method, per
     task, the success and IK-error rates over the episodes the expert solved
@@ -299,7 +306,8 @@ def evaluate(methods: dict, tasks, episodes: int, seed_start: int, workers: int 
         oracles = list(tqdm(run(_oracle_job, jobs), total=len(jobs), desc='expert demos',
                             unit='episode', disable=not progress))
         usable = [o for o in oracles if o.expert_success]
-        jobs = [(name, oracle, tuple(camera_size), n_points, sensor) for name in methods for oracle in usable]
+        jobs = [(name, oracle, tuple(camera_size), n_points, sensor, depth_filter)
+                for name in methods for oracle in usable]
         records = list(tqdm(run(_episode_job, jobs), total=len(jobs), desc='evaluation',
                             unit='episode', disable=not progress))
     skipped = [(o.task, o.seed, o.expert_reason) for o in oracles if not o.expert_success]
@@ -309,6 +317,7 @@ def evaluate(methods: dict, tasks, episodes: int, seed_start: int, workers: int 
         records.sort(key=lambda r: (list(methods).index(r.method), tasks.index(r.task), r.seed))
     results = {'tasks': tasks, 'seeds': [seed_start, seed_start + episodes - 1],
                'camera_size': list(camera_size), 'n_points': n_points, 'sensor': dataclasses.asdict(sensor),
+               'depth_filter': None if depth_filter is None else dataclasses.asdict(depth_filter),
                'workers': workers, 'processes': world,
                'skipped': {task: [{'seed': seed, 'reason': reason} for t, seed, reason in skipped if t == task]
                            for task in tasks},

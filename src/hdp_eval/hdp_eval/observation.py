@@ -9,6 +9,7 @@ from hdp_controller.inputs import ArmState
 from hdp_controller.low_level import SegmentRequest
 from hdp_controller.observation import CAMERA_SIZE, N_POINTS, workspace_points
 from hdp_controller.segment_planning import segment_request as planning_request
+from hdp_data.depth_filters import DepthFilter
 from hdp_motion import panda
 from hdp_msgs_py import conversions
 from hdp_sim_bridge.cameras import CameraRig, default_cameras
@@ -21,14 +22,17 @@ def front_camera(width: int = CAMERA_SIZE[0], height: int = CAMERA_SIZE[1]):
 
 def front_points(world_or_client, camera, n_points: int = N_POINTS,
                  rng: np.random.Generator | None = None, rig: CameraRig | None = None,
-                 frame: int = 0) -> np.ndarray:
+                 frame: int = 0, depth_filter: DepthFilter | None = None) -> np.ndarray:
     """Render ``camera`` in a PandaWorld (or its BulletClient) -> (n_points, 3) float32 world points.
 
     rig: a CameraRig holding ``camera``: the render is its frame number ``frame`` (sensor model,
     calibration error), unprojected through the camera's nominal intrinsics and pose as a
-    subscriber does. None: the ideal render."""
+    subscriber does. None: the ideal render. depth_filter: the camera's post-processing chain,
+    which the depth goes through first (as controller_node's filtered depth); None: none."""
     client = getattr(world_or_client, 'client', world_or_client)
     _, depth_mm = rig.render(client, camera.name, frame) if rig is not None else camera.render(client)
+    if depth_filter is not None:
+        depth_mm = depth_filter.apply(depth_mm, camera.intrinsics.fx, frame)
     points = conversions.depth_to_points(depth_mm * 0.001, camera.intrinsics, camera.camera_to_world)
     return workspace_points(points, n_points, rng)
 

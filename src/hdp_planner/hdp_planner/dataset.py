@@ -14,8 +14,10 @@ the hierarchy in place. An arm's stop that a gripper change follows at the
 same pose is one goal, the change's (``merge_stops_into_gripper_changes``).
 
 Decoding bags is slow, so each episode's samples (workspace points and
-colours, proprio, targets) are cached as one npz under the cache directory,
-keyed by the bag's size and modification time.
+colours, proprio, targets, and the camera frames they came from) are cached as
+one npz under the cache directory, keyed by the bag's size and modification
+time. The frames are kept for depth augmentation (``depth_augmentation``): a
+degraded depth image is unprojected again at draw time, as the agent would see it.
 """
 
 from __future__ import annotations
@@ -28,15 +30,16 @@ from typing import NamedTuple
 import numpy as np
 
 from hdp_msgs_py import topics
-from hdp_msgs_py.conversions import camera_info_to_intrinsics, image_to_numpy, transform_to_matrix
+from hdp_msgs_py.conversions import Intrinsics, camera_info_to_intrinsics, image_to_numpy, transform_to_matrix
 from hdp_data.episodes import list_episodes, read_episode
 from hdp_data.workspace import WORKSPACE
 
 from . import language, rotations
+from .depth_augmentation import DepthAugmentation, augment_depth
 from .model import hand_pose, hand_vector, proprio_vector
 from .voxels import scene_points
 
-CACHE_VERSION = 4           # 4: stops merged into the gripper change that follows (3: FK by hdp_motion)
+CACHE_VERSION = 5           # 5: camera frames kept (4: stops merged into gripper changes; 3: FK by hdp_motion)
 KEYFRAME_SNAP = 0.02          # s
 NO_OP_DISTANCE = 0.01         # m
 NO_OP_ANGLE = math.radians(5)
@@ -100,6 +103,11 @@ def camera_geometry(episode) -> tuple[dict, dict]:
     return intrinsics, to_world
 
 
+def frame_keys(camera: str) -> tuple[str, str, str, str]:
+    """The sample keys of one camera's frames: depth, colour, intrinsics, camera-to-world."""
+    return f'depth_{camera}', f'colour_{camera}', f'intrinsics_{camera}', f'camera_to_world_{camera}'
+
+
 def merge_stops_into_gripper_changes(xyz, quat, gripper_open) -> np.ndarray:
     """(K,) bool: which of K consecutive keyframes (hand xyz (K, 3), quat (K, 4), gripper (K,))
     are goals. A keyframe whose successor changes the gripper at the same pose (within NO_OP_DISTANCE
@@ -117,14 +125,16 @@ def episode_samples(episode) -> dict:
     xyz (P, 3) float32 and rgb (P, 3) uint8 workspace points of all n observations, split at
     starts (n + 1,); joint_positions (n, 7), gripper_open (n,) at each observation;
     target_xyz (n, 3), target_quat (n, 4), target_open (n,) at the keyframe after it;
-    plus task, variation and seed."""
+    task, variation and seed; and per camera C the frames the points came from (frame_keys):
+    depth_C (n, H, W) float32 m, colour_C (n, H, W, 3) uint8, intrinsics_C [fx, fy, cx, cy, W, H],
+    camera_to_world_C (4, 4)."""
     js = episode.joint_states
     keyframes = np.array(episode.keyframes(), dtype=np.int64)
     keyframe_xyz, keyframe_quat = hand_pose(js.position[keyframes])
     goals = merge_stops_into_gripper_changes(keyframe_xyz, keyframe_quat, js.gripper_open[keyframes])
     keyframes, keyframe_xyz, keyframe_quat = keyframes[goals], keyframe_xyz[goals], keyframe_quat[goals]
     intrinsics, to_world = camera_geometry(episode)
-    clouds, state, target = [], [], []
+    clouds, state, target, kept = [], [], [], []
     for t, frame in camera_frames(episode):
         now = max(int(np.searchsorted(js.t, t, side='right')) - 1, 0)      # the state the frame shows
         xyz, quat = hand_pose(js.position[now][None])
@@ -135,6 +145,7 @@ def episode_samples(episode) -> dict:
         if not len(later):
             continue
         clouds.append(scene_points(frame, intrinsics, to_world))
+        kept.append(frame)
         state.append(now)
         target.append(later[0])
     if not clouds:
@@ -142,6 +153,14 @@ def episode_samples(episode) -> dict:
                          f'before a keyframe the arm still has to reach ({len(keyframes)} keyframes)')
     target_xyz, target_quat = keyframe_xyz[target].reshape(-1, 3), keyframe_quat[target].reshape(-1, 4)
     target = keyframes[target]
+    frames = {}
+    for camera in topics.CAMERAS:
+        depth, colour, geometry, pose = frame_keys(camera)
+        i = intrinsics[camera]
+        frames.update({depth: np.stack([f[camera][1] for f in kept]).astype(np.float32),
+                       colour: np.stack([f[camera][0] for f in kept]).astype(np.uint8),
+                       geometry: np.array([i.fx, i.fy, i.cx, i.cy, i.width, i.height]),
+                       pose: np.asarray(to_world[camera], dtype=np.float64)})
     return {
         'xyz': np.concatenate([c[0] for c in clouds]).reshape(-1, 3).astype(np.float32),
         'rgb': np.concatenate([c[1] for c in clouds]).reshape(-1, 3).astype(np.uint8),
@@ -153,6 +172,7 @@ def episode_samples(episode) -> dict:
         'task': np.array(episode.metadata['task']),
         'variation': np.array(int(episode.metadata.get('variation', 0))),
         'seed': np.array(int(episode.metadata.get('seed', -1))),
+        **frames,
     }
 
 
@@ -233,18 +253,22 @@ class Item:
 
 class KeyframeDataset:
     """Samples of many episodes (dicts as episode_samples returns them); each Item's proprio is the
-    ``proprio`` kind of model.PROPRIO_DIMS."""
+    ``proprio`` kind of model.PROPRIO_DIMS. depth_augmentation: how augmented items degrade their
+    depth first (off by default; the episodes then need their frames)."""
 
-    def __init__(self, episodes: list[dict], proprio: str = 'joints'):
+    def __init__(self, episodes: list[dict], proprio: str = 'joints',
+                 depth_augmentation: DepthAugmentation = DepthAugmentation()):
         self.episodes = episodes
         self.proprio = proprio
+        self.depth_augmentation = depth_augmentation
         self._hand_poses = {}                  # episode -> hand_pose of its observations, on first use
         self.index = np.array([(e, s) for e, episode in enumerate(episodes)
                                for s in range(len(episode['target_open']))], dtype=np.int64).reshape(-1, 2)
         self.tasks = np.array([str(episodes[e]['task']) for e, _ in self.index])
 
     @classmethod
-    def from_directory(cls, data_dir, cache_dir=None, progress: bool = True, proprio: str = 'joints') -> KeyframeDataset:
+    def from_directory(cls, data_dir, cache_dir=None, progress: bool = True, proprio: str = 'joints',
+                       depth_augmentation: DepthAugmentation = DepthAugmentation()) -> KeyframeDataset:
         """Every successful episode under ``data_dir``, decoded once and cached (default: <data_dir>_cache)."""
         from tqdm import tqdm
         bags = list_episodes(data_dir)
@@ -252,7 +276,8 @@ class KeyframeDataset:
             raise FileNotFoundError(f'no successful episodes in {data_dir}')
         cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(data_dir)
         return cls([load_samples(bag, cache_dir)
-                    for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)], proprio)
+                    for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)], proprio,
+                   depth_augmentation)
 
     def training_seeds(self) -> dict[str, list[int]]:
         """task -> the sorted seeds of its episodes: what evaluation must stay away from."""
@@ -272,11 +297,15 @@ class KeyframeDataset:
 
     def item(self, i: int, rng: np.random.Generator, augmented: bool = False, heldout: bool = False) -> Item:
         """Sample ``i`` with an instruction drawn from the training (or held-out) phrasings of its
-        task, and, when ``augmented``, a random yaw and shift of scene and target."""
+        task, and, when ``augmented``, its depth degraded (with the depth_augmentation's probability)
+        and a random yaw and shift of scene and target."""
         e, s = self.index[i]
         episode = self.episodes[e]
         start, stop = episode['starts'][s], episode['starts'][s + 1]
         xyz, rgb = episode['xyz'][start:stop], episode['rgb'][start:stop]
+        chance = self.depth_augmentation.probability
+        if augmented and chance and rng.random() < chance:     # no draw when off: the items stay as they were
+            xyz, rgb = self._degraded_points(episode, s, rng)
         target_xyz, target_quat = episode['target_xyz'][s], episode['target_quat'][s]
         move = draw_move(target_xyz, rng) if augmented else SceneMove()
         if augmented:
@@ -288,6 +317,20 @@ class KeyframeDataset:
                     language.instruction(task, int(episode['variation']), phrasings, rng),
                     np.asarray(target_xyz, dtype=np.float32), np.asarray(target_quat, dtype=np.float64),
                     bool(episode['target_open'][s]), task)
+
+    def _degraded_points(self, episode: dict, s: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Observation ``s``'s workspace points from its frames with each camera's depth degraded."""
+        frames, intrinsics, to_world = {}, {}, {}
+        for camera in topics.CAMERAS:
+            depth, colour, geometry, pose = frame_keys(camera)
+            if depth not in episode:
+                raise ValueError(f'a {episode["task"]} episode (seed {int(episode["seed"])}) has no camera frames: '
+                                 'depth augmentation needs samples cached with them (CACHE_VERSION 5)')
+            fx, fy, cx, cy, width, height = episode[geometry]
+            intrinsics[camera] = Intrinsics(fx, fy, cx, cy, int(width), int(height))
+            frames[camera] = (episode[colour][s], augment_depth(episode[depth][s], fx, self.depth_augmentation, rng))
+            to_world[camera] = episode[pose]
+        return scene_points(frames, intrinsics, to_world)
 
     def _proprio(self, e: int, s: int, move: SceneMove) -> np.ndarray:
         episode = self.episodes[e]

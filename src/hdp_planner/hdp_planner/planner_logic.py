@@ -104,11 +104,20 @@ class Observations:
     reset restarts that clock: when a joint state goes back in time the frames are dropped, and
     a frame stamped more than FRAME_LEAD_S ahead of the joint states (one of the old clock, late)
     never counts as fresh.
+
+    depth_filter: a RealSense post-processing chain (hdp_data.depth_filters.FilterSettings) each
+    camera's depth goes through as it arrives, with its own temporal history; None (default): depth
+    as it comes. The chain needs the camera's focal length, so a depth frame that comes before the
+    camera's first camera_info is dropped.
     """
 
-    def __init__(self, cameras=topics.CAMERAS, arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS):
+    def __init__(self, cameras=topics.CAMERAS, arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS,
+                 depth_filter=None):
+        # Only Observations filters depth, so the import stays with it.
+        from hdp_data.depth_filters import DepthFilter
         self.cameras = tuple(cameras)
         self.arm_joints, self.finger_joints = tuple(arm_joints), tuple(finger_joints)
+        self.depth_filters = {} if depth_filter is None else {c: DepthFilter(depth_filter) for c in self.cameras}
         self.color: dict = {}
         self.depth: dict = {}
         self.info: dict = {}
@@ -119,6 +128,12 @@ class Observations:
         self.color[camera] = msg
 
     def on_depth(self, camera: str, msg) -> None:
+        if camera in self.depth_filters:
+            if camera not in self.info:
+                return
+            depth = self.depth_filters[camera].apply(conversions.image_to_numpy(msg), float(self.info[camera].k[0]),
+                                                     time_to_ns(msg.header.stamp))
+            msg = conversions.numpy_to_image(depth, '16UC1', msg.header)
         self.depth[camera] = msg
 
     def on_info(self, camera: str, msg) -> None:

@@ -38,6 +38,7 @@ from hdp_data.episodes import union_of_seeds
 
 from . import checkpoint, rotations, voxels
 from .dataset import KeyframeDataset
+from .depth_augmentation import DepthAugmentation
 from .evaluate import format_metrics, offline_metrics
 from .language import task_vocabulary
 from .model import ModelConfig, NextBestPoseNet
@@ -57,6 +58,11 @@ class TrainConfig:
     seed: int = 0
     val_every: int = 1000
     save_every: int = 250
+    # Probability that a training frame's depth is degraded as a D415's (depth_augmentation.py); 0: off.
+    depth_augmentation: float = 0.0
+
+    def __post_init__(self):
+        DepthAugmentation(probability=self.depth_augmentation)      # refuses a probability outside [0, 1]
 
 
 def training_batch(items, config: ModelConfig, rng: np.random.Generator, device='cpu', rank: int = 0,
@@ -143,7 +149,7 @@ def _stored_model_config(stored: dict, path) -> dict:
 def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed: int = 0, val_data=None,
           device: str = 'cpu', cache=None, save_every: int = 250, val_every: int = 1000,
           model_config: ModelConfig | None = None, init=None, log=print, progress: bool = True,
-          language_encoder: str = 'words') -> dict:
+          language_encoder: str = 'words', depth_augmentation: float = 0.0) -> dict:
     """Train (or continue training) the checkpoint at ``out``; returns the last validation metrics.
 
     An existing ``out`` is continued when its config matches this run's
@@ -151,7 +157,8 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
     ``init``: a checkpoint whose weights start the run (fine-tuning with a fresh
     optimiser and schedule); its model config must match, and its training seeds
     are recorded with this data's. ``language_encoder`` ('words' or 'minilm') is used when
-    ``model_config`` is not given. Under torchrun (see the module docstring) ``batch`` is the
+    ``model_config`` is not given. ``depth_augmentation``: the probability that a training frame's
+    depth is degraded as a D415's first (depth_augmentation.py; 0, off, by default). Under torchrun (see the module docstring) ``batch`` is the
     global batch and must split evenly; rank 0 alone logs, validates, writes curves and
     checkpoints, and the ranks compare their weights at every save.
     """
@@ -166,12 +173,15 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
     if not lead:
         distributed.barrier(world)    # the lead decodes and caches the episodes; the others then read its cache
     model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()), language_encoder=language_encoder)
-    dataset = KeyframeDataset.from_directory(data, cache, progress, model_config.proprio)
+    dataset = KeyframeDataset.from_directory(data, cache, progress, model_config.proprio,
+                                             DepthAugmentation(probability=depth_augmentation))
     val = (KeyframeDataset.from_directory(val_data, progress=progress, proprio=model_config.proprio)
            if val_data and lead else None)
     if lead:
         distributed.barrier(world)
     train_config = {'data': str(Path(data).resolve()), 'steps': steps, 'batch': batch, 'lr': lr, 'seed': seed}
+    if depth_augmentation:            # recorded only when on: runs from before it resume as they were
+        train_config['depth_augmentation'] = depth_augmentation
     torch.manual_seed(seed)           # the initial weights: from the seed, the same on every rank
     model = NextBestPoseNet(model_config).to(device)
     init_seeds = {}
