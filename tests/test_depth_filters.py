@@ -13,7 +13,7 @@ from hdp_data.depth_filters import PRESETS, REALSENSE, DepthFilter, FilterSettin
 from hdp_msgs_py import conversions, topics
 from hdp_msgs_py.conversions import Intrinsics
 from hdp_planner.dataset import KeyframeDataset, frame_keys
-from hdp_planner.depth_augmentation import DepthAugmentation, augment_depth
+from hdp_planner.depth_augmentation import DepthAugmentation, augment_depth, perturbed_extrinsics
 from hdp_planner.planner_logic import Observations
 from hdp_planner.train import TrainConfig
 from hdp_planner.voxels import scene_points
@@ -163,9 +163,9 @@ def test_bad_settings_and_unknown_presets_are_refused():
         FilterSettings(persistence=9)
     with pytest.raises(ValueError, match="hole_filling_mode must be one of .*got 'bogus'"):
         FilterSettings(hole_filling_mode='bogus')
-    with pytest.raises(ValueError, match='unknown depth filter .median.; choices: off, realsense'):
+    with pytest.raises(ValueError, match='unknown depth filter .median.; choices: none, realsense'):
         preset('median')
-    assert preset('off') is None and preset('realsense') == REALSENSE and set(PRESETS) == {'off', 'realsense'}
+    assert preset('none') is None and preset('realsense') == REALSENSE and set(PRESETS) == {'none', 'realsense'}
 
 
 def _depth_msg(depth: np.ndarray, seconds: float, camera: str = 'front'):
@@ -203,6 +203,29 @@ def test_the_controllers_filtered_depth_follows_the_camera_info():
     assert np.array_equal(conversions.image_to_numpy(out), DepthFilter().apply(frame, FOCAL))
     with pytest.raises(ValueError, match='uint16 depth in mm'):
         depth.filtered(conversions.numpy_to_image(frame.astype(np.float32) / 1000, '32FC1'))
+
+
+def test_controller_node_with_depth_filter_realsense_hands_its_logic_filtered_depth_and_drops_what_it_cannot_read():
+    """The node's callbacks (ControllerNode._on_camera_info/_on_depth) on a stand-in node: no ROS."""
+    from types import SimpleNamespace
+
+    from hdp_controller.controller_node import ControllerNode
+    frame = noisy(plane(2000), 6, subpixel=D415.subpixel)
+    seen, infos, dropped = [], [], []
+    node = SimpleNamespace(_depth_rate=None, _depth_filter=FilteredDepth(REALSENSE),
+                           logic=SimpleNamespace(on_depth=seen.append, on_camera_info=infos.append),
+                           dropped_frames=SimpleNamespace(dropped=lambda topic, why: dropped.append(why)))
+    ControllerNode._on_depth(node, _depth_msg(frame, 1.0))
+    assert seen == []                                                   # no camera_info yet: no focal length
+    ControllerNode._on_camera_info(node, _info())
+    ControllerNode._on_depth(node, _depth_msg(frame, 1.0))
+    assert len(infos) == 1 and np.array_equal(conversions.image_to_numpy(seen[0]), DepthFilter().apply(frame, FOCAL))
+    ControllerNode._on_depth(node, conversions.numpy_to_image(frame.astype(np.float32) / 1000, '32FC1'))
+    assert len(seen) == 1 and 'uint16 depth in mm' in dropped[0]
+    node._depth_filter = None                                           # depth_filter none: as it came
+    msg = _depth_msg(frame, 2.0)
+    ControllerNode._on_depth(node, msg)
+    assert seen[-1] is msg
 
 
 # --- the planner's training augmentation (hdp_planner.depth_augmentation) -------------------------------
@@ -266,3 +289,42 @@ def test_the_dataset_degrades_depth_only_when_asked_and_draws_nothing_when_off()
     with pytest.raises(ValueError, match='has no camera frames: depth augmentation needs'):
         KeyframeDataset([no_frames], 'hand', DepthAugmentation(probability=1.0)).item(0, np.random.default_rng(0),
                                                                                      augmented=True)
+
+
+def test_extrinsic_augmentation_moves_each_camera_within_its_bounds_and_only_when_asked():
+    pose = np.eye(4)
+    pose[:3, 3] = [0.3, -0.2, 1.5]
+    settings = DepthAugmentation(probability=1.0, extrinsic_error_mm=5.0, extrinsic_error_deg=1.0)
+    rng = np.random.default_rng(0)
+    moves, turns = [], []
+    for _ in range(200):
+        moved = perturbed_extrinsics(pose, settings, rng)
+        assert np.allclose(moved[:3, :3] @ moved[:3, :3].T, np.eye(3)) and np.linalg.det(moved[:3, :3]) > 0
+        moves.append(1e3 * np.linalg.norm(moved[:3, 3] - pose[:3, 3]))
+        turns.append(np.degrees(np.arccos(np.clip((np.trace(moved[:3, :3]) - 1) / 2, -1, 1))))
+    assert max(moves) <= 5.0 + 1e-9 and max(turns) <= 1.0 + 1e-9
+    assert np.mean(moves) == pytest.approx(2.5, abs=0.4) and np.mean(turns) == pytest.approx(0.5, abs=0.08)
+    rng, twin = np.random.default_rng(1), np.random.default_rng(1)
+    assert np.array_equal(perturbed_extrinsics(pose, DepthAugmentation(probability=1.0), rng), pose)
+    assert rng.random() == twin.random()                   # off: nothing drawn
+    with pytest.raises(ValueError, match='extrinsic errors must be in'):
+        DepthAugmentation(extrinsic_error_mm=-1)
+    with pytest.raises(ValueError, match='set depth_augmentation > 0'):
+        TrainConfig(extrinsic_augmentation_mm=5.0)
+    assert TrainConfig(depth_augmentation=0.5, extrinsic_augmentation_deg=1.0).sensing().extrinsic_error_deg == 1.0
+
+
+def test_the_dataset_shifts_each_cameras_points_by_its_own_calibration_error():
+    """Both cameras see a flat box top at one height; with a translation error each sees it at its own."""
+    episode = _episode_with_frames()
+    exact = DepthAugmentation(probability=1.0, subpixel=0.0, subpixel_max=0.0, edge_hole_share=0.0,
+                              flying_pixel_share=0.0, random_hole_share=0.0)
+    assert np.array_equal(KeyframeDataset([episode], 'hand', exact).item(0, np.random.default_rng(3)).xyz,
+                          episode['xyz'])
+    dataset = KeyframeDataset([episode], 'hand', dataclasses.replace(exact, extrinsic_error_mm=20.0))
+    for seed in range(3):
+        plain = KeyframeDataset([episode], 'hand', exact)._degraded_points(episode, 0, np.random.default_rng(seed))[0]
+        moved = dataset._degraded_points(episode, 0, np.random.default_rng(seed))[0]
+        top, moved_top = (np.unique(np.round(xyz[np.abs(xyz[:, 2] - 0.95) < 0.03, 2], 5)) for xyz in (plain, moved))
+        assert len(top) == 1 and len(moved_top) == 2                # one height per camera
+        assert np.all(np.abs(moved_top - top) <= 0.02 + 1e-6)

@@ -300,7 +300,8 @@ def test_train_cli_config_unknown_keys_and_bad_values_fail_with_one_line(tmp_pat
              'language_noise'),
             ('train: {steps: 2, batch_size: 4}\n',
              f'hdp train high-level: bad configuration: {config}: train: unknown key batch_size; known: steps, '
-             'batch, lr, seed, val_every, save_every, depth_augmentation'),
+             'batch, lr, seed, val_every, save_every, depth_augmentation, extrinsic_augmentation_mm, '
+             'extrinsic_augmentation_deg'),
             ('optimiser: {lr: 0.1}\n',
              f'hdp train high-level: bad configuration: {config}: unknown section optimiser; known: model, train'),
             ('train: {lr: 5e-4}\n',
@@ -333,7 +334,8 @@ def test_torchrun_two_processes_train_what_one_process_trains(episodes, tmp_path
     assert one.returncode == 0, one.stderr
     resolved = json.loads(one.stdout.splitlines()[0])
     assert resolved['train'] == {'steps': 3, 'batch': 4, 'lr': 0.4, 'seed': 0, 'val_every': 1000, 'save_every': 1,
-                                 'depth_augmentation': 0.0}
+                                 'depth_augmentation': 0.0, 'extrinsic_augmentation_mm': 0.0,
+                                 'extrinsic_augmentation_deg': 0.0}
     assert resolved['model']['channels'] == [4, 8, 8] and resolved['model']['language_encoder'] == 'words'
     assert resolved['model']['vocabulary'] == language.task_vocabulary()
     env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}

@@ -539,10 +539,12 @@ def test_a_burst_of_fifty_instructions_gets_fifty_outcomes(ros_domain, tiny_chec
 
 
 @pytest.mark.dds
-@pytest.mark.parametrize('transport', ['raw', 'compressed'])
-def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_domain, tiny_checkpoint, transport):
+@pytest.mark.parametrize('transport, depth_filter', [('raw', 'none'), ('compressed', 'realsense')])
+def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_domain, tiny_checkpoint, transport,
+                                                                         depth_filter):
     """Both image transports: the raw Images, or image_transport's compressed and compressedDepth
-    topics the bridge offers, decoded to the same Images (the cloud the planner saw says so)."""
+    topics the bridge offers, decoded to the same Images (the cloud the planner saw says so); the
+    second also through the RealSense post-processing chain."""
     env = _env(ros_domain)
     bridge = subprocess.Popen([sys.executable, '-m', 'hdp_sim_bridge.sim_bridge_node', '--ros-args',
                                '-p', 'camera_width:=64', '-p', 'camera_height:=48', '-p', 'camera_rate_hz:=4.0',
@@ -552,7 +554,7 @@ def test_planner_node_sends_segments_to_a_controller_until_max_segments(ros_doma
                                 '-p', 'autostart:=true',
                                 '-p', f'checkpoint:={tiny_checkpoint}', '-p', 'max_segments:=2',
                                 '-p', 'camera_timeout_s:=20.0', '-p', 'publish_cloud:=true',
-                                '-p', f'image_transport:={transport}',
+                                '-p', f'image_transport:={transport}', '-p', f'depth_filter:={depth_filter}',
                                 '-p', 'min_confidence:=0.0'],     # untrained: its confidence means nothing
                                env=env, text=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:

@@ -689,16 +689,21 @@ def test_rkd_draws_again_while_refinement_leaves_the_end_off_the_nbp(tmp_path, e
     def planned(error_m, **extras):
         return PlanResult(np.zeros((2, 7)), extras={'goal_error_m': error_m, 'goal_error_deg': 1.0, **extras})
 
-    for allowed in (3, 1):
-        policy = load_policy('rkd', path, 'ddim', steps=2, draws=allowed)
+    for method in ('rkd', 'rkd_redraw', 'rkd_single'):
+        policy = load_policy(method, path, 'ddim', steps=2)
         queue, from_start = list(errors_m), []
         policy._plan_once = lambda request, goal: planned(queue.pop(0))
         policy._from_start = lambda request, nearest, goal: from_start.append(1) or planned(from_start_m)
         plan = policy.plan(_request())
-        if allowed == 1:             # the paper's single draw, refined once from its own sample
+        assert policy.name == method
+        if method == 'rkd_single':   # the paper's single draw, refined once from its own sample
             assert plan.extras['draws'] == 1 and plan.extras['goal_error_m'] == errors_m[0] and not from_start
             continue
-        assert plan.extras['draws'] == draws and plan.extras['goal_error_m'] == kept
+        assert plan.extras['draws'] == draws
+        if method == 'rkd_redraw':   # the nearest draw, never tracked
+            assert plan.extras['goal_error_m'] == min(errors_m) and not from_start
+            continue
+        assert plan.extras['goal_error_m'] == kept
         assert len(from_start) == (from_start_m is not None)
         assert plan.extras['from_start'] == (kept == from_start_m)
 

@@ -42,7 +42,10 @@ def test_every_node_starts_on_its_defaults_and_changes_only_its_own_parameters_l
                                             "got 'lifo'"),
     (PlannerNode, {'camera_size': [4, 4]}, "parameter 'camera_size' must be [width, height] in 8..4096, or "
                                            "[0, 0], got [4, 4]"),
+    (PlannerNode, {'depth_filter': 'median'}, "parameter 'depth_filter' must be one of none, realsense, got 'median'"),
     (ControllerNode, {'method': 'no_such_method'}, "parameter 'method' must be one of"),
+    (ControllerNode, {'depth_filter': 'bilateral'}, "parameter 'depth_filter' must be one of none, realsense, "
+                                                    "got 'bilateral'"),
     (ControllerNode, {'velocity_scale': 1.5}, "parameter 'velocity_scale' must be in (0, 1], got 1.5"),
     (ControllerNode, {'state_timeout_s': -2.0}, "parameter 'state_timeout_s' must be > 0, got -2.0"),
     (ControllerNode, {'unsettled': 'wait'}, "parameter 'unsettled' must be fail or carry_on, got 'wait'"),

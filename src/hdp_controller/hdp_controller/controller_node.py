@@ -24,6 +24,7 @@ from rclpy.action.graph import get_action_client_names_and_types_by_node
 from rclpy.clock import Clock, ClockType
 from rclpy.qos import qos_profile_action_status_default
 
+from hdp_data import depth_filters
 from hdp_motion import panda
 from hdp_msgs_py import topics
 from hdp_ros import diagnostics, image_input, ros
@@ -32,6 +33,7 @@ from hdp_msgs_py.msg import CameraInfo, Header, JointState, JointTrajectory, Pos
 from hdp_msgs_py.outcome import StatusLine
 
 from .action_clients import ArmAction, GripperAction
+from .inputs import FilteredDepth
 from .methods import LEARNED, METHODS
 from .policy import load_policy
 from .segment_controller import ArmCommand, FingerCommand, HoldArm, SegmentController, SegmentResult
@@ -76,6 +78,9 @@ class ControllerNode(ros.LifecycleNode):
         'plan_attempts': (PLAN_ATTEMPTS, 'plans drawn (fresh noise each) before one ending beyond the tolerance '
                                          'is refused'),
         'joint_prefix': ('panda', "joint name prefix: 'fr3' for an FR3"),
+        'depth_filter': ('none', "'none' or 'realsense': librealsense's post-processing chain (spatial, temporal, "
+                                'hole filling; hdp_data.depth_filters) on depth as it arrives, as `hdp eval '
+                                "--depth-filter`; for a camera driver that does not filter"),
         'image_transport': ('raw', "'raw': the cameras' sensor_msgs/Image; 'compressed': image_transport's "
                                    'compressed (JPEG colour) and compressedDepth (16-bit PNG depth) topics, for '
                                    'a network link (hdp_ros.image_input)'),
@@ -102,6 +107,9 @@ class ControllerNode(ros.LifecycleNode):
         if p['image_transport'] not in image_input.TRANSPORTS:
             raise ros.StartupError("parameter 'image_transport' must be one of "
                                    f"{', '.join(image_input.TRANSPORTS)}, got {p['image_transport']!r}")
+        if p['depth_filter'] not in depth_filters.PRESETS:
+            raise ros.StartupError("parameter 'depth_filter' must be one of "
+                                   f"{', '.join(depth_filters.PRESETS)}, got {p['depth_filter']!r}")
         for name in ('arm_interface', 'gripper_interface'):
             if p[name] not in INTERFACES:
                 raise ros.StartupError(f"parameter {name!r} must be topic or action, got {p[name]!r}")
@@ -118,7 +126,7 @@ class ControllerNode(ros.LifecycleNode):
     def __init__(self):
         super().__init__('controller_node')
         p = self.declare_parameter_table()
-        self.logic = self.arm_action = self.gripper_action = None
+        self.logic = self.arm_action = self.gripper_action = self._depth_filter = None
         # In every state: each NBP is answered (failed unless active), and the node says how it stands.
         self._result = self.create_publisher(Header, topics.SEGMENT_RESULT, topics.COMMAND_QOS)
         self.create_subscription(PoseStamped, topics.NEXT_BEST_POSE, self._on_nbp, topics.COMMAND_QOS)
@@ -171,9 +179,10 @@ class ControllerNode(ros.LifecycleNode):
                        'sampler': p['sampler'] if p['method'] in LEARNED else ''}
         self.create_subscription(JointState, topics.JOINT_STATES, self._on_joint_state, topics.COMMAND_QOS)
         self.dropped_frames = image_input.DroppedFrames(self.get_logger())
+        settings = depth_filters.preset(p['depth_filter'])
+        self._depth_filter = None if settings is None else FilteredDepth(settings)
         image_input.subscribe(self, _CAMERA, 'depth', p['image_transport'], self._on_depth, self.dropped_frames)
-        self.create_subscription(CameraInfo, topics.camera_info(_CAMERA),
-                                 self.logic.on_camera_info, topics.SENSOR_QOS)
+        self.create_subscription(CameraInfo, topics.camera_info(_CAMERA), self._on_camera_info, topics.SENSOR_QOS)
         self.create_subscription(TFMessage, topics.TF_STATIC, self.logic.on_tf_static, topics.TF_STATIC_QOS)
         self.create_timer(_STEP_S, self._step)
         # On the wall clock: under use_sim_time the timer above stops with the simulator.
@@ -193,7 +202,7 @@ class ControllerNode(ros.LifecycleNode):
         self.status.info(f'{"shutting down" if shutting_down else "inactive"}: {why}')
 
     def forget(self) -> None:
-        self.logic = self.arm_action = self.gripper_action = None
+        self.logic = self.arm_action = self.gripper_action = self._depth_filter = None
 
     def apply_parameters(self, p: dict) -> None:
         if self.logic is None:             # unconfigured: configure reads them
@@ -246,9 +255,22 @@ class ControllerNode(ros.LifecycleNode):
         self._joint_rate.tick(time.monotonic())
         self.logic.on_joint_state(msg)
 
+    def _on_camera_info(self, msg):
+        if self._depth_filter is not None:
+            self._depth_filter.on_camera_info(msg)
+        self.logic.on_camera_info(msg)
+
     def _on_depth(self, msg):
         if self._depth_rate is not None:
             self._depth_rate.tick(time.monotonic())
+        if self._depth_filter is not None:
+            try:
+                msg = self._depth_filter.filtered(msg)
+            except ValueError as err:              # not 16UC1 millimetres: nothing the chain can read
+                self.dropped_frames.dropped(topics.depth_image(_CAMERA), str(err))
+                return
+            if msg is None:                        # before the first camera_info: the chain needs its focal length
+                return
         self.logic.on_depth(msg)
 
     def _diagnostics(self, wall_s: float) -> list:

@@ -21,7 +21,7 @@ from hdp_learning import checkpoints, distributed
 
 from . import checkpoint
 from .low_level import PlanResult, Scene, SegmentRequest, nearest_of_draws, within
-from .methods import METHODS
+from .methods import METHODS, RKD_VARIANTS
 from .refine import SMOOTHING_PASSES, goal_error, refine, smooth_poses, track
 from .rk_diffuser import RKDiffuser, as_batch
 
@@ -98,20 +98,20 @@ class RKDPolicy(_Sampling):
     name = 'rkd'
 
     def __init__(self, *args, refine_steps: int = REFINE_STEPS, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda'],
-                 draws: int = DRAWS, **kwargs):
+                 draws: int = DRAWS, track_fallback: bool = True, name: str = 'rkd', **kwargs):
         super().__init__(*args, **kwargs)
         self.refine_steps, self.limits = refine_steps, limits      # the robot's: refinement stays inside
-        self.draws = draws
+        self.draws, self.track_fallback, self.name = draws, track_fallback, name
 
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
         """Sample, refine; again (up to ``draws`` in all) while the refined end misses the NBP by
-        more than CONVERGED_M / CONVERGED_DEG. If none converges, the nearest draw's poses are
-        tracked from where the arm is (``_from_start``), kept if that ends nearer. extras['draws']
-        says how many draws it took, extras['from_start'] whether the plan was tracked."""
+        more than CONVERGED_M / CONVERGED_DEG. If none converges and ``track_fallback``, the nearest
+        draw's poses are tracked from where the arm is (``_from_start``), kept if that ends nearer.
+        extras['draws'] says how many draws it took, extras['from_start'] whether the plan was tracked."""
         goal, tolerance = torch.as_tensor(conditions(request)['goal_pose']), (CONVERGED_M, CONVERGED_DEG)
         plan, draws = nearest_of_draws(lambda: self._plan_once(request, goal), _goal_miss, tolerance, self.draws)
         from_start = False
-        if self.draws > 1 and not within(_goal_miss(plan), tolerance):
+        if self.track_fallback and not within(_goal_miss(plan), tolerance):
             again = self._from_start(request, plan, goal)
             from_start = _goal_miss(again) < _goal_miss(plan)
             plan = again if from_start else plan
@@ -169,8 +169,8 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
 
     sampler 'ddpm' runs all 100 steps with the checkpoint's guidance; 'ddim' defaults to
     FAST_STEPS with FAST_GUIDANCE. ``steps`` and ``guidance`` override those defaults. ``draws``:
-    rkd's samples per segment at most (RKDPolicy.plan; 1 is the paper's single draw, without the
-    tracked fallback).
+    the samples per segment at most of rkd and rkd_redraw (RKDPolicy.plan); rkd_single draws once
+    (methods.RKD_VARIANTS).
     """
     if method not in METHODS:
         raise ValueError(f'unknown low-level method {method!r}; choose from {", ".join(METHODS)}')
@@ -184,8 +184,9 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
         guidance = FAST_GUIDANCE
     common = dict(sampler=sampler, steps=steps or (FAST_STEPS if fast else None), seed=seed,
                   guidance=guidance, training_seeds=payload.get('training_seeds'), device=distributed.torch_device(device))
-    if method == 'rkd':
-        return RKDPolicy(model, refine_steps=refine_steps, limits=limits, draws=draws, **common)
+    if method in RKD_VARIANTS:
+        return RKDPolicy(model, refine_steps=refine_steps, limits=limits, draws=1 if method == 'rkd_single' else draws,
+                         track_fallback=method == 'rkd', name=method, **common)
     if method == 'joint':
         return JointDiffusionPolicy(model, **common)
     return PoseIKPolicy(PoseSampler(model, **common), training_seeds=common['training_seeds'])

@@ -87,8 +87,8 @@ class FilterSettings:
 
 
 REALSENSE = FilterSettings()
-# What `--depth-filter` and the nodes' parameters name: off, or Intel's chain with its defaults.
-PRESETS = {'off': None, 'realsense': REALSENSE}
+# What `--depth-filter` and the nodes' parameters name: none, or Intel's chain with its defaults.
+PRESETS = {'none': None, 'realsense': REALSENSE}   # not 'off': YAML and ROS read that as false
 
 
 def preset(name: str) -> FilterSettings | None:
@@ -206,7 +206,9 @@ def _fill_holes(depth: np.ndarray, mode: str) -> None:
     """Intel's hole-filling filter, in place on (H, W) depth, scanning row by row from the top left
     so that a filled pixel feeds the holes after it. farthest/nearest_from_around: the largest /
     smallest valid value among up, up-left, left, down-left and down (what Intel's scan reads; the
-    frame's border rows and first column stay as they are). fill_from_left: the left neighbour."""
+    frame's border rows and first column stay as they are). Intel's nearest_from_around starts from
+    the up neighbour even when it has no depth, and then fills nothing; this takes the documented
+    rule, the nearest valid neighbour. fill_from_left: the left neighbour."""
     height, width = depth.shape
     if mode == 'fill_from_left':
         for row in depth:

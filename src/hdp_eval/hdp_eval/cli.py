@@ -30,8 +30,9 @@ def configure(parser) -> None:
     parser.add_argument('--refine-steps', type=int, default=50,
                         help="rkd's Gauss-Newton refinement steps (default 50)")
     parser.add_argument('--rkd-draws', type=int,
-                        help="rkd's samples per segment at most: it draws again while refinement leaves the end "
-                             "off the NBP (default: hdp_controller.policy.DRAWS, 3; 1 = the paper's single draw)")
+                        help="the samples per segment at most of rkd and rkd_redraw: they draw again while "
+                             "refinement leaves the end off the NBP (default: hdp_controller.policy.DRAWS, 3); "
+                             "rkd_single, the paper's, draws once")
     parser.add_argument('--json', type=Path, help='also write every episode record here')
     parser.add_argument('--workers', type=int, default=1, help='parallel processes (default 1); under torchrun, '
                         'per rank: the ranks share the episodes and rank 0 prints and writes the result')
@@ -63,14 +64,14 @@ def add_sensor_arguments(parser, graph: bool) -> None:
 
 def add_depth_filter_argument(parser) -> None:
     """What the learned levels do with the depth they read (hdp_data.depth_filters)."""
-    parser.add_argument('--depth-filter', choices=('off', 'realsense'), default='off',
-                        help="post-processing of every camera's depth before the learned levels read it: off "
+    parser.add_argument('--depth-filter', choices=('none', 'realsense'), default='none',
+                        help="post-processing of every camera's depth before the learned levels read it: none "
                              "(default) or realsense, librealsense's spatial, temporal and hole-filling chain "
                              "with Intel's defaults")
 
 
 def depth_filter_settings(args):
-    """The FilterSettings --depth-filter names; None for off."""
+    """The FilterSettings --depth-filter names; None for none."""
     from hdp_data.depth_filters import preset
     return preset(args.depth_filter)
 

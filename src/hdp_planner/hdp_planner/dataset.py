@@ -35,7 +35,7 @@ from hdp_data.episodes import list_episodes, read_episode
 from hdp_data.workspace import WORKSPACE
 
 from . import language, rotations
-from .depth_augmentation import DepthAugmentation, augment_depth
+from .depth_augmentation import DepthAugmentation, augment_depth, perturbed_extrinsics
 from .model import hand_pose, hand_vector, proprio_vector
 from .voxels import scene_points
 
@@ -319,7 +319,8 @@ class KeyframeDataset:
                     bool(episode['target_open'][s]), task)
 
     def _degraded_points(self, episode: dict, s: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """Observation ``s``'s workspace points from its frames with each camera's depth degraded."""
+        """Observation ``s``'s workspace points from its frames with each camera's depth degraded and
+        its extrinsics perturbed."""
         frames, intrinsics, to_world = {}, {}, {}
         for camera in topics.CAMERAS:
             depth, colour, geometry, pose = frame_keys(camera)
@@ -329,7 +330,7 @@ class KeyframeDataset:
             fx, fy, cx, cy, width, height = episode[geometry]
             intrinsics[camera] = Intrinsics(fx, fy, cx, cy, int(width), int(height))
             frames[camera] = (episode[colour][s], augment_depth(episode[depth][s], fx, self.depth_augmentation, rng))
-            to_world[camera] = episode[pose]
+            to_world[camera] = perturbed_extrinsics(episode[pose], self.depth_augmentation, rng)
         return scene_points(frames, intrinsics, to_world)
 
     def _proprio(self, e: int, s: int, move: SceneMove) -> np.ndarray:

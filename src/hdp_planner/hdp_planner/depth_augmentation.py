@@ -10,7 +10,11 @@ Per frame, with probability ``probability`` (0: off):
   surfaces return less of the projector's pattern);
 - at depth steps steeper than a surface ``edge_grazing_deg`` from grazing, a share of pixels with
   no depth and a share of flying pixels between the two sides (block matching mixes them);
-- a random share of pixels with no depth, drawn per frame up to ``random_hole_share``.
+- a random share of pixels with no depth, drawn per frame up to ``random_hole_share``;
+- a calibration error per camera (``perturbed_extrinsics``): the frame is unprojected with extrinsics
+  off from the camera's true pose by up to ``extrinsic_error_mm`` and ``extrinsic_error_deg``
+  (magnitudes uniform, directions random), while the target stays where the demonstration put it,
+  so the agent learns to place targets from two clouds that disagree, and from the hand it is told of.
 
 It is written apart from the simulator's sensor model (hdp_sim_bridge.sensor_model, which the planner
 may not import), and deliberately broader than it: training should not fit one simulator's noise.
@@ -36,6 +40,8 @@ class DepthAugmentation:
     edge_hole_share: float = 0.5
     flying_pixel_share: float = 0.3
     random_hole_share: float = 0.03
+    extrinsic_error_mm: float = 0.0   # largest calibration error of an augmented frame's camera: 0, none
+    extrinsic_error_deg: float = 0.0
 
     def __post_init__(self):
         shares = {'probability': self.probability, 'edge_hole_share': self.edge_hole_share,
@@ -46,6 +52,9 @@ class DepthAugmentation:
             bad.append(f'need 0 <= subpixel <= subpixel_max, got {self.subpixel} and {self.subpixel_max}')
         if not (self.baseline_m > 0 and self.min_focal_px > 0 and 0 < self.edge_grazing_deg < 90):
             bad.append('baseline_m and min_focal_px must be > 0 and edge_grazing_deg in (0, 90)')
+        if not (0 <= self.extrinsic_error_mm <= 100 and 0 <= self.extrinsic_error_deg <= 20):
+            bad.append(f'extrinsic errors must be in [0, 100] mm and [0, 20] deg, got '
+                       f'{self.extrinsic_error_mm} and {self.extrinsic_error_deg}')
         if bad:
             raise ValueError('depth_augmentation: ' + '; '.join(bad))
 
@@ -65,6 +74,23 @@ def augment_depth(depth_m: np.ndarray, focal_px: float, settings: DepthAugmentat
     valid &= disparity > 0                 # pushed through zero: no match
     valid &= rng.random(z.shape, dtype=np.float32) >= rng.uniform(0, settings.random_hole_share)
     return np.divide(focal_baseline, disparity, out=np.zeros_like(z), where=valid)
+
+
+def perturbed_extrinsics(camera_to_world: np.ndarray, settings: DepthAugmentation,
+                         rng: np.random.Generator) -> np.ndarray:
+    """(4, 4) ``camera_to_world`` moved along a random direction by up to ``extrinsic_error_mm`` and
+    turned about a random axis through the optical centre by up to ``extrinsic_error_deg`` (in the
+    camera's frame, as a hand-eye calibration errs). Both 0: the pose as it is, and nothing drawn, so
+    runs without it draw as before it existed."""
+    if not (settings.extrinsic_error_mm or settings.extrinsic_error_deg):
+        return np.asarray(camera_to_world, dtype=float)
+    direction, axis = (v / np.linalg.norm(v) for v in rng.standard_normal((2, 3)))
+    angle = math.radians(rng.uniform(0, settings.extrinsic_error_deg))
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    error = np.eye(4)
+    error[:3, :3] = np.eye(3) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross   # Rodrigues
+    error[:3, 3] = direction * rng.uniform(0, settings.extrinsic_error_mm) * 1e-3
+    return np.asarray(camera_to_world, dtype=float) @ error
 
 
 def _edges(z, valid, focal_px, settings, rng):

@@ -20,6 +20,7 @@ import torch
 from rclpy.clock import Clock, ClockType
 from std_srvs.srv import Trigger
 
+from hdp_data import depth_filters
 from hdp_motion import panda
 from hdp_msgs_py import conversions, topics
 from hdp_ros import diagnostics, image_input, ros
@@ -65,6 +66,9 @@ class PlannerNode(ros.LifecycleNode):
         'publish_cloud': (False, 'publish the cloud each prediction saw on /hdp/planner/cloud (for a viewer)'),
         'cpu_threads': (1, "torch's CPU threads; 1 keeps this node from fighting the simulator and the other node "
                            'for two cores (rkd planned in 0.5 s with torch\'s default 2, 0.08 s with 1)'),
+        'depth_filter': ('none', "'none' or 'realsense': librealsense's post-processing chain (spatial, temporal, "
+                                'hole filling; hdp_data.depth_filters) on depth as it arrives, as `hdp eval '
+                                "--depth-filter`; for a camera driver that does not filter"),
         'image_transport': ('raw', "'raw': the cameras' sensor_msgs/Image; 'compressed': image_transport's "
                                    'compressed (JPEG colour) and compressedDepth (16-bit PNG depth) topics, for '
                                    'a network link (hdp_ros.image_input)'),
@@ -95,6 +99,9 @@ class PlannerNode(ros.LifecycleNode):
         if p['image_transport'] not in image_input.TRANSPORTS:
             raise ros.StartupError("parameter 'image_transport' must be one of "
                                    f"{', '.join(image_input.TRANSPORTS)}, got {p['image_transport']!r}")
+        if p['depth_filter'] not in depth_filters.PRESETS:
+            raise ros.StartupError("parameter 'depth_filter' must be one of "
+                                   f"{', '.join(depth_filters.PRESETS)}, got {p['depth_filter']!r}")
         camera_size = tuple(p['camera_size'])
         if camera_size != (0, 0) and (len(camera_size) != 2 or min(camera_size) < 8 or max(camera_size) > 4096):
             raise ros.StartupError("parameter 'camera_size' must be [width, height] in 8..4096, or [0, 0], "
@@ -122,8 +129,8 @@ class PlannerNode(ros.LifecycleNode):
             raise ros.StartupError(f'cannot load the next-best-pose agent: {err}') from None
         warm_up_s = agent.warm_up()        # the first instruction pays no first-call cost
         prefix = p['joint_prefix']
-        observations = Observations(topics.CAMERAS, panda.joint_names(prefix),
-                                    panda.finger_joint_names(prefix))
+        observations = Observations(topics.CAMERAS, panda.joint_names(prefix), panda.finger_joint_names(prefix),
+                                    depth_filters.preset(p['depth_filter']))
         self.observations = observations           # the loop reads them; the subscriptions fill them
         self.loop = PlannerLoop(agent, agent.vocabulary, observations=observations, **_limits(p))
         self._model = {'checkpoint': checkpoint, 'device': str(agent.device), 'warm_up_s': warm_up_s}

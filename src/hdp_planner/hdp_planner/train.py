@@ -60,9 +60,20 @@ class TrainConfig:
     save_every: int = 250
     # Probability that a training frame's depth is degraded as a D415's (depth_augmentation.py); 0: off.
     depth_augmentation: float = 0.0
+    # The largest calibration error given to the cameras of those frames (depth_augmentation.py); 0: none.
+    extrinsic_augmentation_mm: float = 0.0
+    extrinsic_augmentation_deg: float = 0.0
 
     def __post_init__(self):
-        DepthAugmentation(probability=self.depth_augmentation)      # refuses a probability outside [0, 1]
+        self.sensing()                   # refuses values out of range
+
+    def sensing(self) -> DepthAugmentation:
+        """The augmentation of training frames this config asks for."""
+        if (self.extrinsic_augmentation_mm or self.extrinsic_augmentation_deg) and not self.depth_augmentation:
+            raise ValueError('extrinsic_augmentation_mm/_deg perturb the frames depth_augmentation degrades: '
+                             'set depth_augmentation > 0')
+        return DepthAugmentation(probability=self.depth_augmentation, extrinsic_error_mm=self.extrinsic_augmentation_mm,
+                                 extrinsic_error_deg=self.extrinsic_augmentation_deg)
 
 
 def training_batch(items, config: ModelConfig, rng: np.random.Generator, device='cpu', rank: int = 0,
@@ -149,7 +160,8 @@ def _stored_model_config(stored: dict, path) -> dict:
 def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed: int = 0, val_data=None,
           device: str = 'cpu', cache=None, save_every: int = 250, val_every: int = 1000,
           model_config: ModelConfig | None = None, init=None, log=print, progress: bool = True,
-          language_encoder: str = 'words', depth_augmentation: float = 0.0) -> dict:
+          language_encoder: str = 'words', depth_augmentation: float = 0.0, extrinsic_augmentation_mm: float = 0.0,
+          extrinsic_augmentation_deg: float = 0.0) -> dict:
     """Train (or continue training) the checkpoint at ``out``; returns the last validation metrics.
 
     An existing ``out`` is continued when its config matches this run's
@@ -158,8 +170,9 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
     optimiser and schedule); its model config must match, and its training seeds
     are recorded with this data's. ``language_encoder`` ('words' or 'minilm') is used when
     ``model_config`` is not given. ``depth_augmentation``: the probability that a training frame's
-    depth is degraded as a D415's first (depth_augmentation.py; 0, off, by default). Under torchrun (see the module docstring) ``batch`` is the
-    global batch and must split evenly; rank 0 alone logs, validates, writes curves and
+    depth is degraded as a D415's first (depth_augmentation.py; 0, off, by default), and
+    ``extrinsic_augmentation_mm/_deg`` the largest calibration error its cameras then get. Under
+    torchrun (see the module docstring) ``batch`` is the global batch and must split evenly; rank 0 alone logs, validates, writes curves and
     checkpoints, and the ranks compare their weights at every save.
     """
     from tqdm import tqdm
@@ -174,14 +187,17 @@ def train(data, out, steps: int = 6000, batch: int = 16, lr: float = 5e-4, seed:
         distributed.barrier(world)    # the lead decodes and caches the episodes; the others then read its cache
     model_config = model_config or ModelConfig(vocabulary=tuple(task_vocabulary()), language_encoder=language_encoder)
     dataset = KeyframeDataset.from_directory(data, cache, progress, model_config.proprio,
-                                             DepthAugmentation(probability=depth_augmentation))
+                                             TrainConfig(depth_augmentation=depth_augmentation,
+                                                         extrinsic_augmentation_mm=extrinsic_augmentation_mm,
+                                                         extrinsic_augmentation_deg=extrinsic_augmentation_deg).sensing())
     val = (KeyframeDataset.from_directory(val_data, progress=progress, proprio=model_config.proprio)
            if val_data and lead else None)
     if lead:
         distributed.barrier(world)
     train_config = {'data': str(Path(data).resolve()), 'steps': steps, 'batch': batch, 'lr': lr, 'seed': seed}
-    if depth_augmentation:            # recorded only when on: runs from before it resume as they were
-        train_config['depth_augmentation'] = depth_augmentation
+    augmentation = {'depth_augmentation': depth_augmentation, 'extrinsic_augmentation_mm': extrinsic_augmentation_mm,
+                    'extrinsic_augmentation_deg': extrinsic_augmentation_deg}
+    train_config.update({k: v for k, v in augmentation.items() if v})  # recorded when on: older runs resume as they were
     torch.manual_seed(seed)           # the initial weights: from the seed, the same on every rank
     model = NextBestPoseNet(model_config).to(device)
     init_seeds = {}
