@@ -186,3 +186,32 @@ def test_evaluate_table_and_training_seed_refusal():
 def test_cli_help():
     result = subprocess.run([*HDP, 'eval', 'hierarchy', '--help'], text=True, capture_output=True, timeout=300)
     assert result.returncode == 0 and '--phrasings' in result.stdout
+
+
+def test_the_ladder_runs_both_tables_on_every_rung_with_its_sensor():
+    from hdp_eval import ladder
+    rungs = ladder.rungs(extrinsic_mm=5.0, extrinsic_deg=1.0, latency_ms=60.0, camera_hz=15.0)
+    assert [r.name for r in rungs] == ['ideal', 'd415', '+ 5 mm / 1 deg', '+ 60 ms at 15 Hz']
+    results = ladder.evaluate(StuckAgent(), {'nbp_planner': PlannerPolicy()}, {'planner': PlannerPolicy()},
+                              ['reach_target'], 1, 4003, rungs, GraphSettings(max_segments=1), progress=False)
+    sensors = [r['sensor'] for r in results['rungs']]
+    assert [s['profile']['name'] for s in sensors] == ['ideal', 'd415', 'd415', 'd415']
+    assert [(s['extrinsic_error_mm'], s['latency_ms']) for s in sensors] == [(0, 0), (0, 0), (5, 0), (5, 60)]
+    assert [r['camera_hz'] for r in results['rungs']] == [GraphSettings().camera_hz] * 3 + [15.0]
+    # The hierarchy's episodes ran under each rung's cameras: the agent's one segment, then out of budget.
+    for rung in results['rungs']:
+        record, = rung['table1']['agents']['nbp_planner']['seen']['reach_target']['records']
+        assert record['segments'] == 1 and not record['success']
+    assert ladder.overall(results) == {'nbp_planner': [0.0] * 4, 'planner (Table 2)': [100.0] * 4}
+    table = ladder.markdown_table(results)
+    assert '| planner (Table 2) | 100.0 | 100.0 | 100.0 | 100.0 | +0.0 |' in table
+    assert '**+ 60 ms at 15 Hz** (cameras at 15 Hz)' in table
+    with pytest.raises(ValueError, match='at least one rung'):
+        ladder.evaluate(StuckAgent(), {'nbp_planner': PlannerPolicy()}, {}, ['reach_target'], 1, 4003, [])
+
+
+@pytest.mark.dds
+def test_ladder_cli_refuses_nothing_to_run():
+    result = subprocess.run([*HDP, 'eval', 'ladder', '--seed-start', '6000', '--agents', '', '--methods', ''],
+                            text=True, capture_output=True, timeout=300)
+    assert result.returncode != 0 and 'nothing to run: give --agents or --methods' in result.stderr

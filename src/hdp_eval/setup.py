@@ -34,6 +34,7 @@ setup(
         'hdp.commands': [
             'eval.low-level = hdp_eval.cli:configure',
             'eval.hierarchy = hdp_eval.cli:configure_hierarchy',
+            'eval.ladder = hdp_eval.cli:configure_ladder',
             'plot.low-level = hdp_eval.cli:configure_plot',
             'plot.curves = hdp_eval.curves_plot:configure',
             'plot.sensor = hdp_eval.sensor_figure:configure',

@@ -201,30 +201,35 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--plan-attempts', type=int, default=None, metavar='N',
                         help="draws of the low level before a plan ending beyond the reach tolerance is refused "
                              "(default: controller_node's plan_attempts)")
-    parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent_11tasks.pt ($HDP_MODELS_DIR)')
-    parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser_11tasks.pt')
-    parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
-                        help='RK-Diffuser sampler (default ddim)')
     parser.add_argument('--max-segments', type=int, default=8, help='segment budget per episode (default 8)')
     parser.add_argument('--think-s', type=float, default=0.0, metavar='S',
                         help='sim seconds each trajectory is held back after it is planned while the world runs '
                              'on, as in the graph while the nodes think (default 0)')
-    parser.add_argument('--flat-diffusion-policy-checkpoint', type=Path,
-                        help='the diffusion_policy row (default: models/flat_diffusion_policy.pt, $HDP_MODELS_DIR)')
-    parser.add_argument('--flat-act-checkpoint', type=Path,
-                        help='the act row (default: models/flat_act.pt, $HDP_MODELS_DIR)')
     parser.add_argument('--flat-max-seconds', type=float, default=30.0,
                         help="the flat rows' budget per episode, s of sim time (default 30)")
     parser.add_argument('--flat-cameras', choices=('rest', 'every'),
                         help='when the flat rows get a new camera frame: every control step, or rest (at the '
                              'start and whenever the arm comes to rest); default: as each policy\'s training '
                              'episodes held them (every with `hdp collect --camera-rate 10`)')
-    parser.add_argument('--threads', type=int, help='torch CPU threads')
-    parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
+    add_row_arguments(parser)
     parser.add_argument('--json', type=Path, help='also write the results here')
     add_sensor_arguments(parser, graph=True)
     add_depth_filter_argument(parser)
     parser.set_defaults(func=run_hierarchy)
+
+
+def add_row_arguments(parser) -> None:
+    """Where Table 1's rows come from: the checkpoints, the sampler, the threads and the device."""
+    parser.add_argument('--agent-checkpoint', type=Path, help='default: models/hdp_nbp_agent_11tasks.pt ($HDP_MODELS_DIR)')
+    parser.add_argument('--low-level-checkpoint', help='default: models/rk_diffuser_11tasks.pt')
+    parser.add_argument('--sampler', default='ddim', choices=('ddpm', 'ddim'),
+                        help='RK-Diffuser sampler (default ddim)')
+    parser.add_argument('--flat-diffusion-policy-checkpoint', type=Path,
+                        help='the diffusion_policy row (default: models/flat_diffusion_policy.pt, $HDP_MODELS_DIR)')
+    parser.add_argument('--flat-act-checkpoint', type=Path,
+                        help='the act row (default: models/flat_act.pt, $HDP_MODELS_DIR)')
+    parser.add_argument('--threads', type=int, help='torch CPU threads')
+    parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
 
 
 def _reach_tolerance(text: str | None) -> tuple[float, float] | None:
@@ -240,15 +245,42 @@ def _reach_tolerance(text: str | None) -> tuple[float, float] | None:
     return metres, degrees
 
 
-def run_hierarchy(args) -> int:
+def load_rows(args, agents: list[str], command: str, grounding: bool = True) -> tuple:
+    """(the next-best-pose agent or None, name -> low-level policy, name -> FlatPolicy) of Table 1's
+    ``agents``, from add_row_arguments' flags; SystemExit naming ``command`` when one cannot load."""
     import torch
 
     from hdp_controller.policy import load_policy
-    from hdp_controller.segment_planning import PLAN_ATTEMPTS
-    from hdp_planner.agent import NextBestPoseAgent
-    from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE, default_checkpoint
-
     from hdp_learning.checkpoints import default_path
+    from hdp_planner.agent import NextBestPoseAgent
+    from hdp_planner.planner_logic import default_checkpoint
+
+    from .hierarchy_eval import AGENTS, FLAT_AGENTS
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    hierarchical = [name for name in agents if name in AGENTS]
+    try:
+        agent = (NextBestPoseAgent.from_checkpoint(args.agent_checkpoint or default_checkpoint(),
+                                                   ground_instructions=grounding) if hierarchical else None)
+        low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler, device=args.device)
+                      for name in hierarchical}
+        flat = {}
+        if any(name in FLAT_AGENTS for name in agents):
+            from hdp_planner.flat.policy import FlatPolicy
+            chosen = {'diffusion_policy': args.flat_diffusion_policy_checkpoint, 'act': args.flat_act_checkpoint}
+            flat = {name: FlatPolicy.from_checkpoint(chosen[name] or default_path(f'flat_{name}.pt'), args.device,
+                                                     policy=FLAT_AGENTS[name])
+                    for name in agents if name in FLAT_AGENTS}
+    except ValueError as err:
+        raise SystemExit(f'hdp eval {command}: {err}') from None
+    return agent, low_levels, flat
+
+
+def run_hierarchy(args) -> int:
+    import torch
+
+    from hdp_controller.segment_planning import PLAN_ATTEMPTS
+    from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE
 
     from .closed_loop import GraphSettings
     from .hierarchy_eval import AGENTS, FLAT_AGENTS, PHRASINGS, evaluate, markdown_table
@@ -262,25 +294,7 @@ def run_hierarchy(args) -> int:
     if args.camera_hz is not None and not args.camera_hz > 0:
         raise SystemExit(f'--camera-hz must be > 0, got {args.camera_hz}')
     sensor = sensor_settings(args)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    hierarchical = [name for name in agents if name in AGENTS]
-    agent = None
-    if hierarchical:
-        agent_path = args.agent_checkpoint or default_checkpoint()
-        agent = NextBestPoseAgent.from_checkpoint(agent_path, ground_instructions=not args.no_grounding)
-    try:
-        low_levels = {name: load_policy(AGENTS[name], args.low_level_checkpoint, args.sampler, device=args.device)
-                      for name in hierarchical}
-        flat = {}
-        if any(name in FLAT_AGENTS for name in agents):
-            from hdp_planner.flat.policy import FlatPolicy
-            chosen = {'diffusion_policy': args.flat_diffusion_policy_checkpoint, 'act': args.flat_act_checkpoint}
-            flat = {name: FlatPolicy.from_checkpoint(chosen[name] or default_path(f'flat_{name}.pt'), args.device,
-                                                     policy=FLAT_AGENTS[name])
-                    for name in agents if name in FLAT_AGENTS}
-    except ValueError as err:
-        raise SystemExit(f'hdp eval hierarchy: {err}') from None
+    agent, low_levels, flat = load_rows(args, agents, 'hierarchy', grounding=not args.no_grounding)
     min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     try:
         cameras = {} if args.camera_hz is None else {'camera_hz': args.camera_hz}
@@ -307,3 +321,66 @@ def run_hierarchy(args) -> int:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
 
+
+
+def configure_ladder(parser) -> None:
+    """The robustness ladder (issue 40): Table 1's and Table 2's rows on the same episodes under
+    ideal cameras, a D415's, + calibration error, + latency at a D415's rate; every rung in one run."""
+    parser.add_argument('--agents', default='hdp,nbp_planner,diffusion_policy,act',
+                        help="Table 1's rows, comma-separated, as `hdp eval hierarchy --agents`; '' for none "
+                             '(default hdp,nbp_planner,diffusion_policy,act)')
+    parser.add_argument('--methods', default='rkd',
+                        help=f"Table 2's rows, comma-separated, of {', '.join(METHODS)}; '' for none (default rkd)")
+    parser.add_argument('--tasks', default='all', help='comma-separated task names, "all" or "first_six"')
+    parser.add_argument('--episodes', type=int, default=10, help='episodes per task and rung (default 10)')
+    parser.add_argument('--seed-start', type=int, required=True, help='first evaluation seed (never a training seed)')
+    parser.add_argument('--extrinsic-error-mm', type=float, default=5.0, metavar='MM',
+                        help='the calibration rung: each camera renders this far from /tf_static (default 5)')
+    parser.add_argument('--extrinsic-error-deg', type=float, default=1.0, metavar='DEG',
+                        help='and turned this much about a random axis (default 1)')
+    parser.add_argument('--latency-ms', type=float, default=60.0, metavar='MS',
+                        help='the latency rung: frames delivered this long after exposure (default 60)')
+    parser.add_argument('--camera-hz', type=float, default=15.0, metavar='HZ',
+                        help="and the cameras at this rate, a D415's 6, 15 or 30 (default 15)")
+    add_row_arguments(parser)
+    parser.add_argument('--json', type=Path, help='also write the results, every episode record, here')
+    add_depth_filter_argument(parser)
+    parser.set_defaults(func=run_ladder)
+
+
+def run_ladder(args) -> int:
+    from hdp_controller.policy import load_policy
+
+    from . import ladder
+    from .closed_loop import GraphSettings
+    from .hierarchy_eval import AGENTS, FLAT_AGENTS
+    agents = _names(args.agents, {**AGENTS, **FLAT_AGENTS}, 'agent') if args.agents else []
+    methods = _names(args.methods, METHODS, 'method') if args.methods else []
+    if not (agents or methods):
+        raise SystemExit('hdp eval ladder: nothing to run: give --agents or --methods')
+    if args.episodes < 1 or args.seed_start < 0:
+        raise SystemExit('--episodes must be >= 1 and --seed-start >= 0')
+    if not args.camera_hz > 0:
+        raise SystemExit(f'--camera-hz must be > 0, got {args.camera_hz}')
+    tasks = _tasks(args.tasks)
+    try:
+        rungs = ladder.rungs(args.extrinsic_error_mm, args.extrinsic_error_deg, args.latency_ms, args.camera_hz)
+    except ValueError as err:
+        raise SystemExit(f'hdp eval ladder: {err}') from None
+    agent, low_levels, flat = load_rows(args, agents, 'ladder')
+    start = time.monotonic()
+    try:
+        table2 = {name: load_policy(name, args.low_level_checkpoint, args.sampler, device=args.device)
+                  for name in methods}
+        results = ladder.evaluate(agent, low_levels, table2, tasks, args.episodes, args.seed_start, rungs,
+                                  GraphSettings(depth_filter=depth_filter_settings(args)), flat)
+    except ValueError as err:
+        print(f'hdp eval ladder: {err}', file=sys.stderr)
+        return 1
+    results['wall_s'] = round(time.monotonic() - start, 1)
+    print(ladder.markdown_table(results))
+    print(f"\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {results['wall_s'] / 60:.1f} min; "
+          f'depth filter {args.depth_filter}')
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return 0
