@@ -349,6 +349,8 @@ def configure_ladder(parser) -> None:
 
 
 def run_ladder(args) -> int:
+    import torch
+
     from hdp_controller.policy import load_policy
 
     from . import ladder
@@ -377,6 +379,8 @@ def run_ladder(args) -> int:
     except ValueError as err:
         print(f'hdp eval ladder: {err}', file=sys.stderr)
         return 1
+    if torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
+        return 0                          # under torchrun every rank ran its share; rank 0 reports
     results['wall_s'] = round(time.monotonic() - start, 1)
     print(ladder.markdown_table(results))
     print(f"\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {results['wall_s'] / 60:.1f} min; "
