@@ -62,6 +62,13 @@ def add_sensor_arguments(parser, graph: bool) -> None:
                                  "or 30; default: the graph's 2)")
 
 
+def add_refine_extrinsics_argument(parser) -> None:
+    parser.add_argument('--refine-extrinsics', action='store_true',
+                        help="the planner checks each camera's extrinsics against the robot's body as an "
+                             "instruction starts and uses the refined ones (planner_node's refine_extrinsics; "
+                             'hdp_planner.extrinsics)')
+
+
 def add_depth_filter_argument(parser) -> None:
     """What the learned levels do with the depth they read (hdp_data.depth_filters)."""
     parser.add_argument('--depth-filter', choices=('none', 'realsense'), default='none',
@@ -215,6 +222,7 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--json', type=Path, help='also write the results here')
     add_sensor_arguments(parser, graph=True)
     add_depth_filter_argument(parser)
+    add_refine_extrinsics_argument(parser)
     parser.set_defaults(func=run_hierarchy)
 
 
@@ -300,7 +308,8 @@ def run_hierarchy(args) -> int:
         cameras = {} if args.camera_hz is None else {'camera_hz': args.camera_hz}
         settings = GraphSettings(max_segments=args.max_segments, min_confidence=min_confidence,
                                  reach_tolerance=reach_tolerance, plan_attempts=plan_attempts, think_s=args.think_s,
-                                 sensor=sensor, depth_filter=depth_filter_settings(args), **cameras)
+                                 sensor=sensor, depth_filter=depth_filter_settings(args),
+                                 refine_extrinsics=args.refine_extrinsics, **cameras)
         results = evaluate(agent, low_levels, tasks, args.episodes, args.seed_start, phrasings, settings, flat=flat,
                            flat_max_seconds=args.flat_max_seconds, flat_cameras=args.flat_cameras)
     except ValueError as err:
@@ -312,7 +321,8 @@ def run_hierarchy(args) -> int:
     first, last = results['seeds']
     print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}; "
           f"{results['wall_s'] / 60:.1f} min, {results['processes']} process(es); cameras at "
-          f"{settings.camera_hz:g} Hz, {sensor.summary()}, depth filter {args.depth_filter}")
+          f"{settings.camera_hz:g} Hz, {sensor.summary()}, depth filter {args.depth_filter}, extrinsics "
+          f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}")
     if 'flat' in results:
         cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
         print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "
@@ -345,6 +355,7 @@ def configure_ladder(parser) -> None:
     add_row_arguments(parser)
     parser.add_argument('--json', type=Path, help='also write the results, every episode record, here')
     add_depth_filter_argument(parser)
+    add_refine_extrinsics_argument(parser)
     parser.set_defaults(func=run_ladder)
 
 
@@ -375,7 +386,8 @@ def run_ladder(args) -> int:
         table2 = {name: load_policy(name, args.low_level_checkpoint, args.sampler, device=args.device)
                   for name in methods}
         results = ladder.evaluate(agent, low_levels, table2, tasks, args.episodes, args.seed_start, rungs,
-                                  GraphSettings(depth_filter=depth_filter_settings(args)), flat)
+                                  GraphSettings(depth_filter=depth_filter_settings(args),
+                                                refine_extrinsics=args.refine_extrinsics), flat)
     except ValueError as err:
         print(f'hdp eval ladder: {err}', file=sys.stderr)
         return 1
@@ -384,7 +396,8 @@ def run_ladder(args) -> int:
     results['wall_s'] = round(time.monotonic() - start, 1)
     print(ladder.markdown_table(results))
     print(f"\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {results['wall_s'] / 60:.1f} min; "
-          f'depth filter {args.depth_filter}')
+          f"depth filter {args.depth_filter}; extrinsics "
+          f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

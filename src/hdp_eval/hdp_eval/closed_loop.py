@@ -55,6 +55,8 @@ class GraphSettings:
     sensor: SensorSettings = dataclasses.field(default_factory=SensorSettings)
     # the depth filter both learned nodes run on their cameras' depth (hdp_data.depth_filters); None: off
     depth_filter: FilterSettings | None = None
+    # planner_node's refine_extrinsics: each camera checked against the robot's body per instruction
+    refine_extrinsics: bool = False
 
 
 @dataclasses.dataclass
@@ -84,7 +86,8 @@ class InProcessGraph:
     def __init__(self, bridge: SimBridge, agent, policy, needs_points: bool, settings: GraphSettings,
                  scene=None):
         self.bridge, self.settings = bridge, settings
-        self.observations = Observations(depth_filter=settings.depth_filter)   # as planner_node: it fills them
+        self.observations = Observations(depth_filter=settings.depth_filter,       # as planner_node: it fills them
+                                         refine_extrinsics=settings.refine_extrinsics)
         self.planner = PlannerLoop(agent, agent.vocabulary, settings.max_segments, settings.camera_timeout_s,
                                    settings.result_timeout_s, self.observations, settings.min_confidence)
         self.controller = SegmentController(

@@ -109,10 +109,13 @@ class Observations:
     camera's depth goes through as it arrives, with its own temporal history; None (default): depth
     as it comes. The chain needs the camera's focal length, so a depth frame that comes before the
     camera's first camera_info is dropped.
+
+    refine_extrinsics: whether the loop checks each camera's extrinsics against the robot's body
+    (check_extrinsics) as an instruction starts; agent_inputs then gives the refined ones.
     """
 
     def __init__(self, cameras=topics.CAMERAS, arm_joints=panda.ARM_JOINTS, finger_joints=panda.FINGER_JOINTS,
-                 depth_filter=None):
+                 depth_filter=None, refine_extrinsics: bool = False):
         # Only Observations filters depth, so the import stays with it.
         from hdp_data.depth_filters import DepthFilter
         self.cameras = tuple(cameras)
@@ -123,6 +126,8 @@ class Observations:
         self.info: dict = {}
         self.transforms: dict = {}           # child frame -> TransformStamped, from /tf_static
         self.joint_state = None
+        self.refine_extrinsics = refine_extrinsics
+        self.refined: dict = {}              # camera -> (4, 4) camera_to_world the robot's body gave
 
     def on_color(self, camera: str, msg) -> None:
         self.color[camera] = msg
@@ -148,6 +153,7 @@ class Observations:
             if time_to_ns(msg.header.stamp) < self.joint_stamp_ns():      # the clock restarted
                 self.color.clear()
                 self.depth.clear()
+                self.refined.clear()         # a reset world may have its cameras elsewhere
             self.joint_state = msg
 
     def joint_stamp_ns(self) -> int:
@@ -183,7 +189,22 @@ class Observations:
         camera -> TransformStamped world -> optical frame), as NextBestPoseAgent.predict takes them."""
         frames = {c: (conversions.image_to_numpy(self.color[c]), conversions.image_to_numpy(self.depth[c]))
                   for c in self.cameras}
-        return frames, dict(self.info), {c: self._extrinsics(c) for c in self.cameras}
+        return frames, dict(self.info), {c: self.refined.get(c, self._extrinsics(c)) for c in self.cameras}
+
+    def check_extrinsics(self) -> dict:
+        """camera -> extrinsics.ExtrinsicRefinement of its pose on /tf_static against the robot's
+        body in its latest depth frame and the latest joint state; agent_inputs gives the accepted
+        corrections until the next check (a refused one leaves /tf_static's pose)."""
+        from .extrinsics import refine_extrinsics       # the robot's meshes: loaded only where it is on
+        q, width = self.arm()
+        checked = {}
+        for camera in self.cameras:
+            depth = conversions.image_to_numpy(self.depth[camera])
+            depth_m = depth * 0.001 if depth.dtype == np.uint16 else depth.astype(np.float32)
+            checked[camera] = refine_extrinsics(depth_m, conversions.camera_info_to_intrinsics(self.info[camera]),
+                                                conversions.transform_to_matrix(self._extrinsics(camera)), q, width)
+        self.refined = {c: r.camera_to_world for c, r in checked.items() if r.accepted}
+        return checked
 
 
 @dataclasses.dataclass
@@ -356,17 +377,20 @@ class PlannerLoop:
         return [StatusLine(line + ('; re-observing' if self.count < self.max_segments else ''), error=True)]
 
     def _predict_and_send(self, now_s: float, now_ns: int) -> list:
+        checked = []
         try:
             q, width = self.observations.arm()
             if self.gripper_open is None:
                 self.gripper_open = panda.reads_open(width)
+            if self.count == 0 and self.observations.refine_extrinsics:
+                checked = _extrinsics_lines(self.observations.check_extrinsics())
             started = time.perf_counter()
             nbp = self.agent.predict(*self.observations.agent_inputs(), self.instruction, (q, self.gripper_open))
         except (ValueError, RuntimeError) as err:       # bad frames or joint states; torch shape errors
-            return self._stop(f'cannot predict a next-best pose: {err}', now_s, 'failed')
-        prediction = Prediction(float(nbp.confidence), time.perf_counter() - started, nbp.cloud)
+            return checked + self._stop(f'cannot predict a next-best pose: {err}', now_s, 'failed')
+        out = [*checked, Prediction(float(nbp.confidence), time.perf_counter() - started, nbp.cloud)]
         if self.count == 0 and nbp.confidence < self.min_confidence:
-            return [prediction] + self._stop(
+            return out + self._stop(
                 f'refused: the agent cannot ground it (its first next-best pose has confidence '
                 f'{nbp.confidence:.2f}, below min_confidence {self.min_confidence:.2f})', now_s, 'refused')
         self._last_stamp_ns = max(now_ns, self._last_stamp_ns + 1)     # distinct keys, even on a paused clock
@@ -377,10 +401,10 @@ class PlannerLoop:
         x, y, z = nbp.xyz
         goal = JointState(header=Header(stamp=stamp), name=[topics.GRIPPER_GOAL_JOINT],
                           position=[panda.GRIPPER_OPEN_WIDTH if nbp.gripper_open else 0.0])
-        return [prediction,
-                SegmentGoal(goal, conversions.xyz_quat_to_pose_stamped(nbp.xyz, nbp.quat, topics.NBP_FRAME, stamp)),
-                StatusLine(f'segment {self.count}: sent pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
-                           f'{"open" if nbp.gripper_open else "close"} (confidence {nbp.confidence:.2f})')]
+        return out + [
+            SegmentGoal(goal, conversions.xyz_quat_to_pose_stamped(nbp.xyz, nbp.quat, topics.NBP_FRAME, stamp)),
+            StatusLine(f'segment {self.count}: sent pose ({x:.3f}, {y:.3f}, {z:.3f}) gripper '
+                       f'{"open" if nbp.gripper_open else "close"} (confidence {nbp.confidence:.2f})')]
 
     def _begin(self, instruction: str, now_s: float) -> list:
         # Between instructions the world may have been reset or the hand moved by someone
@@ -425,3 +449,18 @@ class PlannerLoop:
 
     def _busy_with(self) -> str:
         return self.instruction if self.instruction is not None else self.waiting[0]
+
+
+def _extrinsics_lines(checked: dict) -> list[StatusLine]:
+    """A status line per camera of Observations.check_extrinsics: the correction, or why the pose on
+    /tf_static was kept unchecked (an error line: the calibration could not be confirmed)."""
+    lines = []
+    for camera, result in checked.items():
+        if result.accepted:
+            lines.append(StatusLine(f"{camera} camera extrinsics refined from the robot's body by "
+                                    f'{result.translation_mm:.1f} mm / {result.rotation_deg:.2f} deg '
+                                    f'({result.points} points, residual {result.residual_mm:.1f} mm)'))
+        else:
+            lines.append(StatusLine(f'{camera} camera extrinsics kept as /tf_static says: {result.why}', error=True))
+    return lines
+

@@ -22,6 +22,7 @@ from std_srvs.srv import Trigger
 
 from hdp_data import depth_filters
 from hdp_motion import panda
+from hdp_motion.body import body_surface
 from hdp_msgs_py import conversions, topics
 from hdp_ros import diagnostics, image_input, ros
 from hdp_ros.liveness import ROBOT_HINT, Liveness
@@ -66,6 +67,9 @@ class PlannerNode(ros.LifecycleNode):
         'publish_cloud': (False, 'publish the cloud each prediction saw on /hdp/planner/cloud (for a viewer)'),
         'cpu_threads': (1, "torch's CPU threads; 1 keeps this node from fighting the simulator and the other node "
                            'for two cores (rkd planned in 0.5 s with torch\'s default 2, 0.08 s with 1)'),
+        'refine_extrinsics': (False, "check each camera's extrinsics against the robot's body in its depth as an "
+                                     'instruction starts, and predict with the refined ones (extrinsics.py; the '
+                                     "Panda's meshes: not for an FR3)"),
         'depth_filter': ('none', "'none' or 'realsense': librealsense's post-processing chain (spatial, temporal, "
                                 'hole filling; hdp_data.depth_filters) on depth as it arrives, as `hdp eval '
                                 "--depth-filter`; for a camera driver that does not filter"),
@@ -130,7 +134,9 @@ class PlannerNode(ros.LifecycleNode):
         warm_up_s = agent.warm_up()        # the first instruction pays no first-call cost
         prefix = p['joint_prefix']
         observations = Observations(topics.CAMERAS, panda.joint_names(prefix), panda.finger_joint_names(prefix),
-                                    depth_filters.preset(p['depth_filter']))
+                                    depth_filters.preset(p['depth_filter']), p['refine_extrinsics'])
+        if p['refine_extrinsics']:
+            body_surface(panda.HOME, panda.GRIPPER_OPEN_WIDTH)       # the meshes load now, not at the first check
         self.observations = observations           # the loop reads them; the subscriptions fill them
         self.loop = PlannerLoop(agent, agent.vocabulary, observations=observations, **_limits(p))
         self._model = {'checkpoint': checkpoint, 'device': str(agent.device), 'warm_up_s': warm_up_s}
