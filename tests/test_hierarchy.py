@@ -210,6 +210,50 @@ def test_the_ladder_runs_both_tables_on_every_rung_with_its_sensor():
         ladder.evaluate(StuckAgent(), {'nbp_planner': PlannerPolicy()}, {}, ['reach_target'], 1, 4003, [])
 
 
+def _ladder_results(rung_successes: list[dict]) -> dict:
+    """A ladder's results with one Table 1 row 'hdp' whose (task, seed) -> (success, segments,
+    failure) are given per rung."""
+    rungs = []
+    for i, episodes in enumerate(rung_successes):
+        per_task = {}
+        for (task, seed), (success, segments, failure) in episodes.items():
+            per_task.setdefault(task, {'records': []})['records'].append(
+                {'task': task, 'seed': seed, 'success': success, 'segments': segments, 'failure': failure})
+        rungs.append({'name': f'rung {i}', 'table1': {'agents': {'hdp': {'seen': per_task}}}, 'table2': None})
+    return {'rungs': rungs}
+
+
+@pytest.mark.unit
+def test_the_ladder_keeps_the_rungs_asked_for_in_its_order():
+    from hdp_eval import ladder
+    assert [r.name for r in ladder.rungs(only=('latency', 'ideal'))] == ['ideal', '+ 60 ms at 15 Hz']
+    with pytest.raises(ValueError, match='unknown rung.*lag: choose from ideal, d415'):
+        ladder.rungs(only=('ideal', 'lag'))
+
+
+@pytest.mark.unit
+def test_the_ladder_says_where_a_rung_loses_the_first_rungs_successes():
+    from hdp_eval import ladder
+    ideal = {('open_oven', 1): (True, 3, None), ('open_oven', 2): (True, 3, None),
+             ('stack_blocks', 1): (True, 4, None), ('stack_blocks', 2): (False, 2, 'time budget spent')}
+    noisy = {('open_oven', 1): (False, 1, 'controller failed: no path (goal 0.41 m away)'),
+             ('open_oven', 2): (False, 1, 'controller failed: no path (goal 0.12 m away)'),
+             ('stack_blocks', 1): (False, 2, "refused: confidence 0.21 below 0.3 for 'stack'"),
+             ('stack_blocks', 2): (True, 4, None)}
+    results = _ladder_results([ideal, noisy])
+    loss, = ladder.losses(results)
+    assert (loss['rung'], loss['row'], loss['lost'], loss['gained']) == ('rung 1', 'hdp', 3, 1)
+    assert loss['by_task'] == {'open_oven': 2, 'stack_blocks': 1}
+    assert loss['by_segments_run'] == {1: 2, 2: 1}
+    # The same cause with other numbers counts as one reason.
+    assert loss['by_reason'] == {'controller failed: no path': 2, 'refused: confidence N below N for': 1}
+    text = ladder.losses_markdown(results)
+    assert text.startswith('- **hdp, rung 1**: lost 3 of the first rung\'s successes, gained 1.')
+    assert '2 x "controller failed: no path"' in text
+    # A rung that changes nothing says nothing.
+    assert ladder.losses_markdown(_ladder_results([ideal, ideal])) == ''
+
+
 @pytest.mark.dds
 def test_ladder_cli_refuses_nothing_to_run():
     result = subprocess.run([*HDP, 'eval', 'ladder', '--seed-start', '6000', '--agents', '', '--methods', ''],

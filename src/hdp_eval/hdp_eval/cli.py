@@ -352,6 +352,10 @@ def configure_ladder(parser) -> None:
                         help='the latency rung: frames delivered this long after exposure (default 60)')
     parser.add_argument('--camera-hz', type=float, default=15.0, metavar='HZ',
                         help="and the cameras at this rate, a D415's 6, 15 or 30 (default 15)")
+    parser.add_argument('--rungs', default='ideal,d415,calibration,latency',
+                        help='the rungs to run, comma-separated, each adding to the one before: ideal, d415, '
+                             'calibration (+ the extrinsic error), latency (+ the latency and camera rate); '
+                             'the losses are counted against the first (default: all four)')
     add_row_arguments(parser)
     parser.add_argument('--json', type=Path, help='also write the results, every episode record, here')
     add_depth_filter_argument(parser)
@@ -377,9 +381,12 @@ def run_ladder(args) -> int:
         raise SystemExit(f'--camera-hz must be > 0, got {args.camera_hz}')
     tasks = _tasks(args.tasks)
     try:
-        rungs = ladder.rungs(args.extrinsic_error_mm, args.extrinsic_error_deg, args.latency_ms, args.camera_hz)
+        rungs = ladder.rungs(args.extrinsic_error_mm, args.extrinsic_error_deg, args.latency_ms, args.camera_hz,
+                             [key.strip() for key in args.rungs.split(',') if key.strip()])
     except ValueError as err:
         raise SystemExit(f'hdp eval ladder: {err}') from None
+    if not rungs:
+        raise SystemExit('hdp eval ladder: --rungs names none')
     agent, low_levels, flat = load_rows(args, agents, 'ladder')
     start = time.monotonic()
     try:
