@@ -218,7 +218,8 @@ def _ladder_results(rung_successes: list[dict]) -> dict:
         per_task = {}
         for (task, seed), (success, segments, failure) in episodes.items():
             per_task.setdefault(task, {'records': []})['records'].append(
-                {'task': task, 'seed': seed, 'success': success, 'segments': segments, 'failure': failure})
+                {'task': task, 'seed': seed, 'success': success, 'segments': segments, 'failure': failure,
+                 'confidences': [0.1 * seed + 0.01 * i, 0.9]})
         rungs.append({'name': f'rung {i}', 'table1': {'agents': {'hdp': {'seen': per_task}}}, 'table2': None})
     return {'rungs': rungs}
 
@@ -252,6 +253,8 @@ def test_the_ladder_says_where_a_rung_loses_the_first_rungs_successes():
     assert '2 x "controller failed: no path"' in text
     # A rung that changes nothing says nothing.
     assert ladder.losses_markdown(_ladder_results([ideal, ideal])) == ''
+    # The successes' first confidences: seed 1 on rung 0 (0.10), seed 2 on rung 1 (0.21).
+    assert ladder.least_confident_success(results) == {'hdp': pytest.approx(0.1)}
 
 
 @pytest.mark.dds

@@ -322,7 +322,8 @@ def run_hierarchy(args) -> int:
     print(f"\nagent inference p50 {results['agent_predict_ms_p50']} ms; seeds {first}-{last}; "
           f"{results['wall_s'] / 60:.1f} min, {results['processes']} process(es); cameras at "
           f"{settings.camera_hz:g} Hz, {sensor.summary()}, depth filter {args.depth_filter}, extrinsics "
-          f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}")
+          f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}; "
+          f"min_confidence {min_confidence:g}")
     if 'flat' in results:
         cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
         print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "
@@ -356,6 +357,9 @@ def configure_ladder(parser) -> None:
                         help='the rungs to run, comma-separated, each adding to the one before: ideal, d415, '
                              'calibration (+ the extrinsic error), latency (+ the latency and camera rate); '
                              'the losses are counted against the first (default: all four)')
+    parser.add_argument('--min-confidence', type=float, default=None,
+                        help="refuse an instruction whose first prediction is less confident (default: "
+                             "planner_node's min_confidence; 0 on validation seeds to choose it for a checkpoint)")
     add_row_arguments(parser)
     parser.add_argument('--json', type=Path, help='also write the results, every episode record, here')
     add_depth_filter_argument(parser)
@@ -367,6 +371,7 @@ def run_ladder(args) -> int:
     import torch
 
     from hdp_controller.policy import load_policy
+    from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE
 
     from . import ladder
     from .closed_loop import GraphSettings
@@ -388,13 +393,15 @@ def run_ladder(args) -> int:
     if not rungs:
         raise SystemExit('hdp eval ladder: --rungs names none')
     agent, low_levels, flat = load_rows(args, agents, 'ladder')
+    min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
     start = time.monotonic()
     try:
         table2 = {name: load_policy(name, args.low_level_checkpoint, args.sampler, device=args.device)
                   for name in methods}
         results = ladder.evaluate(agent, low_levels, table2, tasks, args.episodes, args.seed_start, rungs,
                                   GraphSettings(depth_filter=depth_filter_settings(args),
-                                                refine_extrinsics=args.refine_extrinsics), flat)
+                                                refine_extrinsics=args.refine_extrinsics,
+                                                min_confidence=min_confidence), flat)
     except ValueError as err:
         print(f'hdp eval ladder: {err}', file=sys.stderr)
         return 1
@@ -404,7 +411,8 @@ def run_ladder(args) -> int:
     print(ladder.markdown_table(results))
     print(f"\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {results['wall_s'] / 60:.1f} min; "
           f"depth filter {args.depth_filter}; extrinsics "
-          f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}")
+          f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}; "
+          f"min_confidence {min_confidence:g}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

@@ -129,6 +129,20 @@ def losses(results: dict) -> list[dict]:
     return out
 
 
+def least_confident_success(results: dict) -> dict[str, float]:
+    """Table 1's row -> the lowest first-NBP confidence among its successes on any rung: a
+    planner_node min_confidence above it would have refused a success (choose it on validation
+    seeds, with --min-confidence 0, as planner_node's README says)."""
+    lowest = {}
+    for rung in results['rungs']:
+        for name, per_phrasing in ((rung['table1'] or {}).get('agents') or {}).items():
+            firsts = [r['confidences'][0] for per_task in per_phrasing['seen'].values()
+                      for r in per_task['records'] if r['success'] and r['confidences']]
+            if firsts:
+                lowest[name] = min(lowest.get(name, 1.0), *firsts)
+    return lowest
+
+
 def _counts(counter: dict) -> str:
     return ', '.join(f'{key} {n}' for key, n in counter.items())
 
@@ -163,6 +177,10 @@ def markdown_table(results: dict) -> str:
             lines.append(hierarchy_eval.markdown_table(rung['table1']))
         if rung['table2']:
             lines += ['', low_level_eval.markdown_table(rung['table2'])]
+    lowest = least_confident_success(results)
+    if lowest:
+        lines += ['', 'Least confident first NBP of a success (a min_confidence above it refuses a success): ' +
+                  ', '.join(f'{name} {value:.3f}' for name, value in lowest.items())]
     where = losses_markdown(results)
     if where:
         lines += ['', f"**Where the rungs lose episodes** (against {results['rungs'][0]['name']}, same seeds)", '',
