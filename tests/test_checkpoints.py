@@ -157,3 +157,12 @@ def test_importing_the_checkpoint_rules_loads_no_torch():
     probe = 'import sys, hdp_learning.checkpoints; print("torch" in sys.modules)'
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout.strip() == 'False', result.stderr
+
+
+def test_a_bare_checkpoint_name_is_the_released_file_of_that_name(tmp_path, monkeypatch):
+    monkeypatch.setenv('HDP_MODELS_DIR', str(tmp_path / 'models'))
+    monkeypatch.chdir(tmp_path)
+    assert checkpoints.resolve('hdp_nbp_agent_11tasks_d415.pt') == tmp_path / 'models' / 'hdp_nbp_agent_11tasks_d415.pt'
+    (tmp_path / 'mine.pt').write_bytes(b'')
+    assert checkpoints.resolve('mine.pt') == Path('mine.pt')              # a file here wins
+    assert checkpoints.resolve('runs/agent.pt') == Path('runs/agent.pt')  # a path stays a path

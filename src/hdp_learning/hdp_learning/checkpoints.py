@@ -51,6 +51,15 @@ def default_path(name: str) -> Path:
     return models_dir() / name
 
 
+def resolve(path_or_name) -> Path:
+    """A checkpoint path as given, or, for a bare file name that is not a file here, the released
+    checkpoint of that name in models_dir() (a parameter file can then name one on any host)."""
+    path = Path(path_or_name)
+    if path.parent == Path('.') and not path.is_file():
+        return default_path(path.name)
+    return path
+
+
 def save(path, payload: dict) -> None:
     """Write ``payload`` (with str 'format' and int 'version') to ``path`` atomically."""
     import torch

@@ -21,6 +21,7 @@ from rclpy.clock import Clock, ClockType
 from std_srvs.srv import Trigger
 
 from hdp_data import depth_filters
+from hdp_learning import checkpoints
 from hdp_motion import panda
 from hdp_motion.body import body_surface
 from hdp_msgs_py import conversions, topics
@@ -52,7 +53,8 @@ def _limits(p: dict) -> dict:
 class PlannerNode(ros.LifecycleNode):
     PARAMETERS = {
         **ros.LifecycleNode.LIFECYCLE_PARAMETERS,
-        'checkpoint': ('', "next-best-pose agent; '' = models/hdp_nbp_agent_11tasks.pt ($HDP_MODELS_DIR)"),
+        'checkpoint': ('', "next-best-pose agent: a path, or a file name in models/ ($HDP_MODELS_DIR); "
+                           "'' = models/hdp_nbp_agent_11tasks.pt"),
         'max_segments': (8, 'segments per instruction before it has failed'),
         'camera_timeout_s': (5.0, 's to wait for fresh frames from both cameras'),
         'result_timeout_s': (60.0, 's to wait for a segment result before the next segment'),
@@ -125,7 +127,7 @@ class PlannerNode(ros.LifecycleNode):
     def configure(self, p: dict) -> None:
         camera_size = None if tuple(p['camera_size']) == (0, 0) else tuple(p['camera_size'])
         torch.set_num_threads(p['cpu_threads'])
-        checkpoint = p['checkpoint'] or default_checkpoint()
+        checkpoint = checkpoints.resolve(p['checkpoint']) if p['checkpoint'] else default_checkpoint()
         try:
             agent = NextBestPoseAgent.from_checkpoint(checkpoint, camera_size=camera_size,
                                                       ground_instructions=p['ground_instructions'])
