@@ -27,7 +27,6 @@ import yaml
 
 import netns
 from hdp_msgs_py import topics
-from hdp_ros import fastdds
 
 pytestmark = [pytest.mark.dds, pytest.mark.timeout(600)]
 
@@ -145,31 +144,13 @@ def run_episode(workstation: netns.Host, env: dict, seed: int) -> dict:
     return echoed(out)
 
 
-def host_environments(mode: str, domain: int, robot: netns.Host, workstation: netns.Host,
-                      tmp_path: Path) -> tuple[dict, dict]:
-    """The robot's and the workstation's environments for ``mode``: a discovery of
-    netns.discovery_env, or 'tls', hdp_ros's opt-in profile with credentials made here by `hdp dds
-    credentials` and the discovery server on the robot."""
-    if mode != 'tls':
-        return netns.discovery_env(mode, domain, workstation), netns.discovery_env(mode, domain, robot)
-    cell = tmp_path / 'cell'
-    done = subprocess.run([*HDP, 'dds', 'credentials', str(cell), 'robot', 'workstation'], capture_output=True,
-                          text=True, timeout=60)
-    assert done.returncode == 0, done.stderr
-    server = f'{robot.address}:{fastdds.DISCOVERY_SERVER_PORT}'
-    return tuple({**netns.discovery_env('localhost', domain, peer), 'HDP_DDS_TLS_DIR': str(cell / name),
-                  'HDP_DDS_DISCOVERY_SERVER': server} for name, peer in (('robot', workstation), ('workstation', robot)))
-
-
-@pytest.mark.parametrize('mode', ['subnet', 'static_peers', 'tls'])
+@pytest.mark.parametrize('mode', ['subnet', 'static_peers'])
 def test_an_episode_succeeds_with_the_graph_split_across_two_hosts(ros_domain, mode, tmp_path):
     """The bridge on the robot, planner and controller on the workstation, each host's nodes
-    started by `hdp launch`, over a 1 Gbit/s link; 128x96 cameras at 4 Hz, as the graph test.
-    'tls': every byte over TCP with TLS, through `hdp dds server` on the robot."""
+    started by `hdp launch`, over a 1 Gbit/s link; 128x96 cameras at 4 Hz, as the graph test."""
     with netns.two_hosts(rate_mbit=1000) as (robot, workstation):
-        robot_env, workstation_env = host_environments(mode, ros_domain, robot, workstation, tmp_path)
-        if mode == 'tls':
-            robot.popen([*HDP, 'dds', 'server'], env=robot_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        robot_env = netns.discovery_env(mode, ros_domain, workstation)
+        workstation_env = netns.discovery_env(mode, ros_domain, robot)
         logs = {name: open(tmp_path / f'{name}.log', 'w') for name in ('robot', 'workstation')}
         robot.popen([*HDP, 'launch', '--nodes', 'sim_bridge_node', '--task', EPISODE_TASK,
                      '-p', 'sim_bridge_node:camera_width:=128',
