@@ -83,6 +83,18 @@ def depth_filter_settings(args):
     return preset(args.depth_filter)
 
 
+def add_min_confidence_argument(parser) -> None:
+    parser.add_argument('--min-confidence', type=float, default=None,
+                        help="refuse an instruction whose first prediction is less confident (default: "
+                             "planner_node's min_confidence; 0 on validation seeds to choose it for a checkpoint)")
+
+
+def min_confidence(args) -> float:
+    """--min-confidence, or planner_node's default (imported here: the parser loads no torch)."""
+    from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE
+    return DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
+
+
 def sensor_settings(args):
     """The SensorSettings of add_sensor_arguments' flags; SystemExit on a bad value."""
     from hdp_sim_bridge.sensor_model import SensorSettings, profile_named
@@ -199,9 +211,7 @@ def configure_hierarchy(parser) -> None:
     parser.add_argument('--no-grounding', action='store_true',
                         help='give the agent instructions as they are, not read as the nearest training '
                              'instruction first (hdp_planner.grounding)')
-    parser.add_argument('--min-confidence', type=float, default=None,
-                        help="refuse an instruction whose first prediction is less confident "
-                             "(default: planner_node's min_confidence)")
+    add_min_confidence_argument(parser)
     parser.add_argument('--reach-tolerance', default=None, metavar='M,DEG',
                         help="refuse a plan that ends farther from its NBP (default: controller_node's "
                              "reach_tolerance_m,reach_tolerance_deg; 'off' executes every plan)")
@@ -288,7 +298,6 @@ def run_hierarchy(args) -> int:
     import torch
 
     from hdp_controller.segment_planning import PLAN_ATTEMPTS
-    from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE
 
     from .closed_loop import GraphSettings
     from .hierarchy_eval import AGENTS, FLAT_AGENTS, PHRASINGS, evaluate, markdown_table
@@ -303,10 +312,10 @@ def run_hierarchy(args) -> int:
         raise SystemExit(f'--camera-hz must be > 0, got {args.camera_hz}')
     sensor = sensor_settings(args)
     agent, low_levels, flat = load_rows(args, agents, 'hierarchy', grounding=not args.no_grounding)
-    min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
+    threshold = min_confidence(args)
     try:
         cameras = {} if args.camera_hz is None else {'camera_hz': args.camera_hz}
-        settings = GraphSettings(max_segments=args.max_segments, min_confidence=min_confidence,
+        settings = GraphSettings(max_segments=args.max_segments, min_confidence=threshold,
                                  reach_tolerance=reach_tolerance, plan_attempts=plan_attempts, think_s=args.think_s,
                                  sensor=sensor, depth_filter=depth_filter_settings(args),
                                  refine_extrinsics=args.refine_extrinsics, **cameras)
@@ -323,7 +332,7 @@ def run_hierarchy(args) -> int:
           f"{results['wall_s'] / 60:.1f} min, {results['processes']} process(es); cameras at "
           f"{settings.camera_hz:g} Hz, {sensor.summary()}, depth filter {args.depth_filter}, extrinsics "
           f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}; "
-          f"min_confidence {min_confidence:g}")
+          f"min_confidence {threshold:g}")
     if 'flat' in results:
         cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
         print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "
@@ -357,9 +366,7 @@ def configure_ladder(parser) -> None:
                         help='the rungs to run, comma-separated, each adding to the one before: ideal, d415, '
                              'calibration (+ the extrinsic error), latency (+ the latency and camera rate); '
                              'the losses are counted against the first (default: all four)')
-    parser.add_argument('--min-confidence', type=float, default=None,
-                        help="refuse an instruction whose first prediction is less confident (default: "
-                             "planner_node's min_confidence; 0 on validation seeds to choose it for a checkpoint)")
+    add_min_confidence_argument(parser)
     add_row_arguments(parser)
     parser.add_argument('--json', type=Path, help='also write the results, every episode record, here')
     add_depth_filter_argument(parser)
@@ -371,7 +378,6 @@ def run_ladder(args) -> int:
     import torch
 
     from hdp_controller.policy import load_policy
-    from hdp_planner.planner_logic import DEFAULT_MIN_CONFIDENCE
 
     from . import ladder
     from .closed_loop import GraphSettings
@@ -393,7 +399,7 @@ def run_ladder(args) -> int:
     if not rungs:
         raise SystemExit('hdp eval ladder: --rungs names none')
     agent, low_levels, flat = load_rows(args, agents, 'ladder')
-    min_confidence = DEFAULT_MIN_CONFIDENCE if args.min_confidence is None else args.min_confidence
+    threshold = min_confidence(args)
     start = time.monotonic()
     try:
         table2 = {name: load_policy(name, args.low_level_checkpoint, args.sampler, device=args.device)
@@ -401,7 +407,7 @@ def run_ladder(args) -> int:
         results = ladder.evaluate(agent, low_levels, table2, tasks, args.episodes, args.seed_start, rungs,
                                   GraphSettings(depth_filter=depth_filter_settings(args),
                                                 refine_extrinsics=args.refine_extrinsics,
-                                                min_confidence=min_confidence), flat)
+                                                min_confidence=threshold), flat)
     except ValueError as err:
         print(f'hdp eval ladder: {err}', file=sys.stderr)
         return 1
@@ -412,7 +418,7 @@ def run_ladder(args) -> int:
     print(f"\nseeds {args.seed_start}-{args.seed_start + args.episodes - 1}, {results['wall_s'] / 60:.1f} min; "
           f"depth filter {args.depth_filter}; extrinsics "
           f"{'refined from the robot' if args.refine_extrinsics else 'as /tf_static says'}; "
-          f"min_confidence {min_confidence:g}")
+          f"min_confidence {threshold:g}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
