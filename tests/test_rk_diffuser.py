@@ -17,7 +17,7 @@ from hdp_controller.diffusion import TrajectoryDiffusion
 from hdp_controller.low_level import HORIZON, SegmentRequest
 from hdp_controller.pointnet2 import PointNet2Encoder, ball_query, farthest_point_sample
 from hdp_controller.policy import conditions
-from hdp_controller.refine import goal_error, refine, smooth_poses, track
+from hdp_controller.refine import goal_error, pull_to_goal, refine, smooth_poses, track
 from hdp_controller.rk_diffuser import (RKDConfig, RKDiffuser, goal_loss, joint_motion, joints_from_motion,
                                         smoothness_loss)
 from hdp_controller.unet import TemporalUnet
@@ -211,6 +211,21 @@ def test_sampling_holds_inpainted_waypoints():
         assert torch.equal(x[:, 0], known[0]) and torch.equal(x[:, -1], known[-1])
 
 
+def test_a_guide_corrects_every_step_and_the_sample_is_its_last_correction():
+    torch.manual_seed(0)
+    diffusion = TrajectoryDiffusion(TemporalUnet(7, 4, dim=8), HORIZON, 7, train_steps=10)
+    seen = []
+
+    def guide(x0):
+        seen.append(x0.clone())
+        return x0.clamp(-0.01, 0.01)
+    for sampler in ('ddpm', 'ddim'):
+        seen.clear()
+        x = diffusion.sample(torch.randn(2, 4), {0: torch.zeros(2, 7)}, sampler=sampler, steps=4, guide=guide)
+        assert len(seen) == 4 and x.abs().max() <= 0.01 + 1e-6 and torch.equal(x[:, 0], torch.zeros(2, 7))
+        assert max(float(s.abs().max()) for s in seen) > 0.01       # the network's estimates were corrected
+
+
 @pytest.mark.dds
 def test_training_reduces_the_loss(segments):
     torch.manual_seed(0)
@@ -306,6 +321,23 @@ def test_refinement_holds_the_start_respects_limits_and_reaches_the_goal():
     beyond[..., 3] = torch.linspace(-1.0, 0.5, HORIZON)
     out = refine(truth, kinematics.fk_pose(beyond), steps=30)
     assert (out[:, 1:, 3] <= panda.UPPER[3]).all() and (out >= torch.tensor(panda.LOWER, dtype=out.dtype)).all()
+
+
+def test_pulling_to_the_goal_moves_the_end_onto_it_and_keeps_the_start_and_the_shape():
+    q0 = torch.tensor(panda.HOME, dtype=torch.float32)
+    q1 = q0 + torch.tensor([0.4, 0.2, -0.2, 0.3, 0.1, -0.2, 0.4])
+    arc = 0.1 * torch.sin(torch.linspace(0, torch.pi, HORIZON))[:, None] * torch.ones(7)
+    truth = (q0 + (q1 - q0) * torch.linspace(0, 1, HORIZON)[:, None] + arc)[None]
+    goal = kinematics.fk_pose(truth[:, -1])
+    short = truth.clone()
+    short[:, 1:] += torch.linspace(0, 1, HORIZON)[1:, None] * torch.tensor([0.1, -0.1, 0.05, 0.1, 0, 0.1, -0.1])
+    assert goal_error(short, goal)[0].item() > 0.03
+    pulled = pull_to_goal(short, goal)
+    translation, rotation = goal_error(pulled, goal)
+    assert translation.item() < 2e-3 and np.degrees(rotation.item()) < 0.5
+    assert torch.equal(pulled[:, 0], short[:, 0])
+    # The correction is a ramp: the trajectory's bend (its second differences) is untouched.
+    assert torch.allclose(torch.diff(pulled, n=2, dim=1), torch.diff(short, n=2, dim=1), atol=1e-5)
 
 
 def test_tracking_follows_a_long_pose_path_from_the_start_in_the_start_configuration():
@@ -660,6 +692,11 @@ def test_learned_policies_from_a_checkpoint(tmp_path):
     assert rkd.training_seeds == {'reach_target': [0]}
     joint = load_policy('joint', path, 'ddim', steps=2).plan(request)
     assert joint.ok and panda.within_limits(joint.joints)
+    # Untrained too, goal guidance lands the joint sample's end on the NBP; the raw sample does not.
+    guided = load_policy('joint_guided', path, 'ddim', steps=2)
+    plan = guided.plan(request)
+    assert guided.name == 'joint_guided' and plan.ok and panda.within_limits(plan.joints)
+    assert plan.extras['goal_error_m'] < 5e-3 < joint.extras['goal_error_m']
     # The fast sampler skips classifier-free guidance (one encoding per sample, not two);
     # the full one guides. Both refine alike.
     for sampler, encodings in (('ddim', 1), ('ddpm', 2)):

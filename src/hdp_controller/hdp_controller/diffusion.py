@@ -8,10 +8,15 @@ the paper found better than predicting the noise.
 
 Inpainting (Diffuser): the waypoints fixed by the task (the start, and
 for the pose diffuser the goal) are overwritten with their known values in
-the network's input and output at every step, so they hold exactly.
+the network's input and output at every step, so they hold exactly. A
+constraint that is not a known waypoint (the joint diffuser's goal is a pose,
+not joints) can be imposed the same way by ``guide``, a map applied to every
+step's x0 prediction: the next step denoises from the corrected estimate.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler
@@ -62,11 +67,14 @@ class TrajectoryDiffusion(nn.Module):
     @torch.no_grad()
     def sample(self, cond: torch.Tensor, known: dict, null_cond: torch.Tensor | None = None,
                guidance: float = 1.0, sampler: str = 'ddpm', steps: int | None = None,
-               generator: torch.Generator | None = None, local: torch.Tensor | None = None) -> torch.Tensor:
+               generator: torch.Generator | None = None, local: torch.Tensor | None = None,
+               guide: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
         """(B, T, D) trajectories from Gaussian noise.
 
         With ``null_cond`` (the conditions with the dropped ones nulled, as in
         training) and guidance w != 1: x0 = x0_null + w (x0_cond - x0_null).
+        ``guide`` (B, T, D) -> (B, T, D) corrects each step's x0 estimate (the last
+        step's is the sample).
         """
         scheduler = make_scheduler(sampler, self.train_steps)
         scheduler.set_timesteps(steps or self.train_steps)
@@ -84,5 +92,7 @@ class TrajectoryDiffusion(nn.Module):
                 x0 = x0_null + guidance * (x0_cond - x0_null)
             else:
                 x0 = self.predict_x0(x, steps_t, cond, known, local)
+            if guide is not None:
+                x0 = inpaint(guide(x0), known)
             x = scheduler.step(x0, t, x, generator=generator).prev_sample
         return inpaint(x, known)

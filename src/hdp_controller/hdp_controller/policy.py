@@ -3,6 +3,7 @@
   rkd      sample both diffusers, refine the joints onto the poses (the paper's method)
   planner, planner_rrt  (baselines.PlannerPolicy: straight line else RRT-Connect; RRT-Connect only)
   joint    the joint diffuser alone: no distillation at inference, no refinement, no smoothing
+  joint_guided  the same, each denoising step's estimate pulled onto the NBP (RKDiffuser.sample's goal_guidance)
   pose_ik  the pose diffuser (smoothed), then IK per waypoint (baselines.PoseIKPolicy)
 
 All three come from one checkpoint, so they see the same conditions.
@@ -39,6 +40,8 @@ REFINE_STEPS = 50
 # two open_box segments, a new draw converged, while the refined end of almost every other
 # segment is exact (p95 0.0 cm / 0.02 deg). Some NBPs stall in every draw (models/rk_diffuser.md).
 DRAWS = 3
+# joint_guided's Gauss-Newton steps on the last waypoint at each denoising step.
+GOAL_GUIDANCE_STEPS = 10
 CONVERGED_M, CONVERGED_DEG = 0.01, 5.0
 
 
@@ -77,12 +80,12 @@ class _Sampling:
         self.seed = int(np.random.SeedSequence([self.base_seed, episode_seed]).generate_state(1)[0])
         self.calls = 0
 
-    def _sample(self, request: SegmentRequest, which) -> dict:
+    def _sample(self, request: SegmentRequest, which, goal_guidance: int = 0) -> dict:
         """The samples on the CPU, wherever the model runs (refinement and IK run there)."""
         generator = torch.Generator().manual_seed(self.seed + self.calls)
         self.calls += 1
         batch = {k: v.to(self.device) for k, v in conditions(request).items()}
-        out = self.model.sample(batch, self.sampler, self.steps, self.guidance, generator, which)
+        out = self.model.sample(batch, self.sampler, self.steps, self.guidance, generator, which, goal_guidance)
         return {k: v.cpu() for k, v in out.items()}
 
 
@@ -151,10 +154,13 @@ def _goal_miss(plan: PlanResult) -> tuple[float, float]:
 
 
 class JointDiffusionPolicy(_Sampling):
-    name = 'joint'
+    def __init__(self, *args, goal_guidance: int = 0, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.goal_guidance = goal_guidance
+        self.name = 'joint_guided' if goal_guidance else 'joint'
 
     def plan(self, request: SegmentRequest, scene: Scene | None = None) -> PlanResult:
-        joints = self._sample(request, ('joint',))['joints']
+        joints = self._sample(request, ('joint',), self.goal_guidance)['joints']
         translation, rotation = goal_error(joints, torch.as_tensor(conditions(request)['goal_pose']))
         return PlanResult(joints[0].numpy(), extras={'goal_error_m': float(translation[0]),
                                                      'goal_error_deg': float(np.degrees(rotation[0].item()))})
@@ -187,6 +193,6 @@ def load_policy(method: str, checkpoint_path=None, sampler: str = 'ddpm', steps:
     if method in RKD_VARIANTS:
         return RKDPolicy(model, refine_steps=refine_steps, limits=limits, draws=1 if method == 'rkd_single' else draws,
                          track_fallback=method == 'rkd', name=method, **common)
-    if method == 'joint':
-        return JointDiffusionPolicy(model, **common)
+    if method in ('joint', 'joint_guided'):
+        return JointDiffusionPolicy(model, goal_guidance=GOAL_GUIDANCE_STEPS if method == 'joint_guided' else 0, **common)
     return PoseIKPolicy(PoseSampler(model, **common), training_seeds=common['training_seeds'])

@@ -104,6 +104,22 @@ def track(start: torch.Tensor, poses: torch.Tensor, steps: int = _TRACK_STEPS, m
     return torch.stack(joints, 1)
 
 
+def pull_to_goal(joints: torch.Tensor, goal_pose: torch.Tensor, steps: int = _RESTART_STEPS, max_step: float = 0.1,
+                 damping: float = 1e-2, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']) -> torch.Tensor:
+    """joints (B, T, 7), goal_pose (B, 7) -> joints whose last waypoint is solved onto the goal
+    (or the same grasp turned half a turn, whichever is nearer) by ``steps`` Gauss-Newton steps
+    from where it was, the correction spread along the trajectory as a ramp from zero at the
+    start: the end moves, the shape stays. The joint diffuser's goal guidance (RKDiffuser.sample)."""
+    lower = torch.tensor(limits.lower, dtype=joints.dtype) + _LIMIT_MARGIN
+    upper = torch.tensor(limits.upper, dtype=joints.dtype) - _LIMIT_MARGIN
+    last = joints[:, -1].clamp(lower, upper)
+    goal = goal_pose.to(joints.dtype)
+    rotation = hand_symmetric_targets(quat_to_matrix(goal[:, None, 3:]), forward_kinematics(last[:, None])[1])[:, 0]
+    solved = _gauss_newton(last, (goal[:, :3], rotation), steps, max_step, damping, (lower, upper))
+    ramp = torch.linspace(0.0, 1.0, joints.shape[1], dtype=joints.dtype)[None, :, None]
+    return joints + ramp * (solved - joints[:, -1])[:, None]
+
+
 def _gauss_newton(q, targets, steps: int, max_step: float, damping: float, limits,
                   centring: float = 0.0) -> torch.Tensor:
     """q (N, 7) -> after ``steps`` bounded steps towards targets ((N, 3) m, (N, 3, 3)); see

@@ -35,6 +35,7 @@ from hdp_data.workspace import WORKSPACE
 from .diffusion import TrajectoryDiffusion
 from .low_level import HORIZON
 from .pointnet2 import PointNet2Encoder
+from .refine import pull_to_goal
 from .unet import TemporalUnet
 
 _CENTRE = torch.tensor(WORKSPACE.mean(axis=0), dtype=torch.float32)
@@ -280,8 +281,13 @@ class RKDiffuser(nn.Module):
 
     @torch.no_grad()
     def sample(self, batch: dict, sampler: str = 'ddpm', steps: int | None = None, guidance: float | None = None,
-               generator: torch.Generator | None = None, which=('pose', 'joint')) -> dict:
-        """Conditions (B, ...) -> {'poses': (B, T, 7) xyz + quat xyzw, 'joints': (B, T, 7) rad}."""
+               generator: torch.Generator | None = None, which=('pose', 'joint'), goal_guidance: int = 0) -> dict:
+        """Conditions (B, ...) -> {'poses': (B, T, 7) xyz + quat xyzw, 'joints': (B, T, 7) rad}.
+
+        ``goal_guidance`` > 0: at every step the joint diffuser's x0 estimate is pulled onto the
+        goal pose by that many Gauss-Newton steps on its last waypoint (refine.pull_to_goal): the
+        goal, which the pose diffuser inpaints, imposed on the joint diffuser through kinematics.
+        """
         guidance = self.config.guidance if guidance is None else guidance
         b = batch['q'].shape[0]
         device = batch['q'].device
@@ -294,8 +300,14 @@ class RKDiffuser(nn.Module):
             out['poses'] = poses_from_deviation(deviation, batch['start_pose'], batch['goal_pose'])
         if 'joint' in which:
             known = {0: torch.zeros_like(batch['q'])}
+            guide = None
+            if goal_guidance:
+                def guide(motion):
+                    joints = joints_from_motion(motion, batch['q']).cpu()     # kinematics run on the CPU
+                    pulled = pull_to_goal(joints, batch['goal_pose'].cpu(), goal_guidance).to(motion.device)
+                    return joint_motion(pulled, batch['q'])
             motion = self.joint.sample(cond, known, null, guidance, sampler, steps, generator,
-                                       self._joint_reference(batch))
+                                       self._joint_reference(batch), guide)
             joints = joints_from_motion(motion, batch['q'])
             out['joints'] = torch.maximum(torch.minimum(joints, _UPPER.to(joints)), _LOWER.to(joints))
         return out
