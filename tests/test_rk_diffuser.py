@@ -813,6 +813,26 @@ def test_an_arm_read_a_hair_beyond_a_limit_gets_a_trajectory_the_bridge_accepts(
     accept(msg, 0.0, current)           # raised 'panda_joint5 = 2.8973 rad is above its limit' before
 
 
+def test_a_plan_that_starts_where_a_pressed_arm_reads_is_accepted_onto_the_limit():
+    """A hinge pushes joint 7 2.3 mrad past its limit; a plan tracked from there (refine.track
+    starts at the arm's reading) goes out on the limit. Further past than the arm is, it is refused."""
+    from hdp_controller.trajectory import PRESSED_TOLERANCE, TrajectoryError, joint_trajectory
+    from hdp_msgs_py.conversions import parse_joint_trajectory
+    current = panda.HOME.copy()
+    current[6] = panda.UPPER[6] + 0.0023
+    plan = np.linspace(current, np.concatenate([panda.HOME[:6], [2.0]]), 10)
+    positions = parse_joint_trajectory(joint_trajectory(current, plan))[1]
+    assert positions[:, 6].max() == panda.UPPER[6]
+    further = plan.copy()
+    further[3, 6] = panda.UPPER[6] + 0.005
+    with pytest.raises(TrajectoryError, match=r'0.0050 rad outside .*joint 7'):
+        joint_trajectory(current, further)
+    # An arm reading far past a limit is a fault, not a press: nothing is planned from it.
+    current[6] = panda.UPPER[6] + 2 * PRESSED_TOLERANCE
+    with pytest.raises(TrajectoryError, match='joint 7'):
+        joint_trajectory(current, np.linspace(current, panda.HOME, 10))
+
+
 def test_fig4_plot_writes_a_png(tmp_path):
     from hdp_eval.figures import plot
     line = np.linspace([0.4, 0.0, 1.0], [0.6, 0.1, 0.9], HORIZON)

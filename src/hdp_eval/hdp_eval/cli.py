@@ -19,7 +19,7 @@ def configure(parser) -> None:
     parser.add_argument('--episodes', type=int, default=25, help='episodes per task (default 25)')
     parser.add_argument('--seed-start', type=int, required=True,
                         help='first seed; must not overlap the seeds a checkpoint was trained on')
-    parser.add_argument('--checkpoint', help='checkpoint of the learned methods (rkd, pose_ik, joint)')
+    parser.add_argument('--checkpoint', help='checkpoint of the learned methods (rkd and its variants, pose_ik, joint, joint_guided)')
     parser.add_argument('--sampler', choices=('ddpm', 'ddim'), default='ddim',
                         help='diffusion sampler of the learned methods: ddim (5 steps, unguided; default) '
                              'or ddpm (100, guided)')
