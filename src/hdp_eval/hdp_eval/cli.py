@@ -198,7 +198,8 @@ def configure_hierarchy(parser) -> None:
     N-th episode and rank 0 prints the table and writes the one result file."""
     parser.add_argument('--agents', default='hdp,nbp_planner,nbp_joint',
                         help='comma-separated: hdp (agent + RK-Diffuser), nbp_planner (agent + planner), '
-                             'nbp_joint (agent + joint diffusion), and the flat baselines diffusion_policy '
+                             'nbp_joint (agent + joint diffusion), nbp_joint_guided (agent + joint diffusion with '
+                             'goal guidance), and the flat baselines diffusion_policy '
                              'and act (hdp_planner.flat); default the three hierarchical rows')
     parser.add_argument('--tasks', default='all', help='comma-separated task names, "all" or "first_six"')
     parser.add_argument('--episodes', type=int, default=10, help='episodes per task (default 10)')

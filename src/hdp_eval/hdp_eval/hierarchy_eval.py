@@ -9,7 +9,8 @@ the segment budget, by the nodes' rules and with their parameters (closed_loop.G
 
 Agents (Table 1 rows):  hdp = agent + RK-Diffuser, nbp_planner = agent +
 planner (PerAct + Planner), nbp_joint = agent + joint diffusion (PerAct +
-Diffuser). Every agent runs on the same seeds and instructions.
+Diffuser), nbp_joint_guided = agent + the joint diffuser with goal guidance (joint_guided).
+Every agent runs on the same seeds and instructions.
 
 The flat rows (FLAT_AGENTS: diffusion_policy, act; hdp_planner.flat) have no next-best poses:
 every control period (0.1 s) the policy is shown both cameras, the arm's joints and gripper,
@@ -47,7 +48,7 @@ from hdp_sim_bridge.world import TIME_STEP, PandaWorld
 from .closed_loop import GraphSettings, InProcessGraph
 from .low_level_eval import check_seed_hygiene, world_scene
 
-AGENTS = {'hdp': 'rkd', 'nbp_planner': 'planner', 'nbp_joint': 'joint'}
+AGENTS = {'hdp': 'rkd', 'nbp_planner': 'planner', 'nbp_joint': 'joint', 'nbp_joint_guided': 'joint_guided'}
 # The flat rows: name -> the hdp_planner.flat policy (and its checkpoint models/flat_<name>.pt).
 FLAT_AGENTS = {'diffusion_policy': 'diffusion_policy', 'act': 'act'}
 # s of sim time per flat episode: 2.5 x the longest demonstration (open_oven, ~12 s); the
