@@ -300,17 +300,22 @@ class RKDiffuser(nn.Module):
             out['poses'] = poses_from_deviation(deviation, batch['start_pose'], batch['goal_pose'])
         if 'joint' in which:
             known = {0: torch.zeros_like(batch['q'])}
-            guide = None
-            if goal_guidance:
-                def guide(motion):
-                    joints = joints_from_motion(motion, batch['q']).cpu()     # kinematics run on the CPU
-                    pulled = pull_to_goal(joints, batch['goal_pose'].cpu(), goal_guidance).to(motion.device)
-                    return joint_motion(pulled, batch['q'])
+            guide = _goal_guide(batch, goal_guidance) if goal_guidance else None
             motion = self.joint.sample(cond, known, null, guidance, sampler, steps, generator,
                                        self._joint_reference(batch), guide)
             joints = joints_from_motion(motion, batch['q'])
             out['joints'] = torch.maximum(torch.minimum(joints, _UPPER.to(joints)), _LOWER.to(joints))
         return out
+
+
+def _goal_guide(batch: dict, steps: int):
+    """The joint diffuser's guide for TrajectoryDiffusion.sample: a motion estimate (B, T, 7) ->
+    the same with its end pulled onto batch['goal_pose'] by ``steps`` Gauss-Newton steps."""
+    def guide(motion: torch.Tensor) -> torch.Tensor:
+        joints = joints_from_motion(motion, batch['q']).cpu()        # the kinematics run on the CPU
+        pulled = pull_to_goal(joints, batch['goal_pose'].cpu(), steps).to(motion.device)
+        return joint_motion(pulled, batch['q'])
+    return guide
 
 
 def parameter_count(module: nn.Module) -> int:
