@@ -104,7 +104,7 @@ def track(start: torch.Tensor, poses: torch.Tensor, steps: int = _TRACK_STEPS, m
     return torch.stack(joints, 1)
 
 
-def pull_to_goal(joints: torch.Tensor, goal_pose: torch.Tensor, steps: int = _RESTART_STEPS, max_step: float = 0.1,
+def pull_to_goal(joints: torch.Tensor, goal_pose: torch.Tensor, steps: int = 10, max_step: float = 0.1,
                  damping: float = 1e-2, limits: panda.JointLimits = panda.ROBOT_LIMITS['panda']) -> torch.Tensor:
     """joints (B, T, 7), goal_pose (B, 7) -> joints whose last waypoint is solved onto the goal
     (or the same grasp turned half a turn, whichever is nearer) by ``steps`` Gauss-Newton steps
