@@ -252,7 +252,8 @@ def test_cli_help_and_a_planner_run():
 @pytest.mark.parametrize('args, message', [
     (['--tasks', 'fly'], 'unknown task'),
     (['--methods', 'magic'], 'unknown method'),
-    (['--episodes', '0'], '--episodes and --workers must be >= 1'),
+    (['--episodes', '0'], '--episodes, --workers and --threads must be >= 1'),
+    (['--threads', '0'], '--episodes, --workers and --threads must be >= 1'),
     (['--seed-start', '-3'], '--seed-start must be >= 0'),
     (['--refine-steps', '0'], '--steps, --refine-steps and --rkd-draws must be >= 1'),
     (['--rkd-draws', '0'], '--steps, --refine-steps and --rkd-draws must be >= 1'),
