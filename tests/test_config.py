@@ -97,6 +97,23 @@ def test_the_loader_and_the_launcher_helpers_import_no_torch():
     assert result.stdout.strip() == 'False', result.stderr
 
 
+@pytest.mark.dds
+def test_a_process_group_left_open_is_closed_before_the_interpreter_exits(tmp_path):
+    """The evaluations join torchrun's group and return without stop(); left to the interpreter's
+    teardown, gloo's threads were freed while joinable and a rank aborted at exit (3 two-process runs
+    in 12 here, "terminate called without an active exception"). Eight runs must all exit cleanly."""
+    import os
+    script = tmp_path / 'gather.py'
+    script.write_text('from hdp_learning import distributed\n'
+                      'rank, world, _ = distributed.start()\n'
+                      'print(distributed.gather(rank, world))\n')
+    env = {**os.environ, 'MASTER_ADDR': '127.0.0.1', 'GLOO_SOCKET_IFNAME': 'lo', 'OMP_NUM_THREADS': '1'}
+    for _ in range(8):
+        run = subprocess.run([sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc-per-node', '2',
+                              str(script)], capture_output=True, text=True, timeout=120, env=env)
+        assert run.returncode == 0 and run.stdout.count('[0, 1]') == 2, run.stderr[-2000:]
+
+
 def test_the_low_level_configs_load_as_before():
     """The released RK-Diffuser configs give what RKDConfig.from_dict and TrainConfig(**) gave."""
     import yaml

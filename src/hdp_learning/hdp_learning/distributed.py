@@ -12,6 +12,7 @@ functions only (as in ``checkpoints``): hdp_learning needs no torch at import.
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import os
 
@@ -45,6 +46,10 @@ def start(device: str = 'cpu') -> tuple[int, int, str]:
         torch.cuda.set_device(device)
     if not torch.distributed.is_initialized():
         torch.distributed.init_process_group('nccl' if device.startswith('cuda') else 'gloo')
+        # Callers that return without stop() (the evaluations, whose group the ladder reuses) leave
+        # here: a group left to the interpreter's teardown frees gloo's threads while they are still
+        # joinable, and the process aborts ("terminate called without an active exception").
+        atexit.register(stop, world)
     return torch.distributed.get_rank(), world, device
 
 
