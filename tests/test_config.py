@@ -127,6 +127,19 @@ def test_the_low_level_configs_load_as_before():
         assert configs['train'] == TrainConfig(**(values.get('train') or {})), path
 
 
+@pytest.mark.parametrize('name, parameters', [('flat_diffusion_policy_11tasks', 5_923_656),
+                                              ('flat_act_11tasks', 2_185_480)])
+def test_the_flat_recipes_load_and_build_the_networks_their_cards_name(name, parameters):
+    """Every key of the 100-a-task recipes is known, and the network is the size the README states."""
+    from hdp_planner.flat.checkpoint import build_network, config_class
+    from hdp_planner.flat.train import FlatTrainConfig
+    policy = name[len('flat_'):-len('_11tasks')]
+    configs = load_sections(ROOT / f'src/hdp_planner/config/{name}.yaml',
+                            {'model': config_class(policy), 'train': FlatTrainConfig})
+    network = build_network(policy, configs['model'])
+    assert sum(p.numel() for p in network.parameters() if p.requires_grad) == parameters
+
+
 @pytest.mark.dds
 def test_low_level_cli_refuses_an_unknown_key_in_one_line(tmp_path):
     config = tmp_path / 'rkd.yaml'

@@ -101,6 +101,18 @@ def test_dataset_samples_the_flat_rate(episodes, tmp_path):
     assert not padded.is_pad[0, 0] and padded.is_pad[0, 1:].all()
 
 
+def test_dataset_decoded_by_two_processes_is_the_one_process_dataset(episodes, tmp_path):
+    config = DiffusionPolicyConfig(language_encoder='words')
+    shape = (config.n_obs, config.horizon, config.image_width, config.image_height)
+    one = FlatDataset.from_directory(episodes, *shape, cache_dir=tmp_path / 'one', progress=False)
+    two = FlatDataset.from_directory(episodes, *shape, cache_dir=tmp_path / 'two', progress=False, workers=2)
+    assert len(list((tmp_path / 'two').glob('*.npz'))) == len(one.episodes) == 2
+    for a, b in zip(one.episodes, two.episodes):
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match='workers'):
+        FlatDataset.from_directory(episodes, *shape, cache_dir=tmp_path / 'two', progress=False, workers=0)
+
+
 def test_dataset_cache_is_keyed_by_image_size(episodes, tmp_path):
     bag = list_episodes(episodes)[0]
     first = load_flat_samples(bag, tmp_path, 64, 48)
@@ -201,6 +213,24 @@ def test_checkpoint_round_trip_and_policy(checkpoints, episodes, tmp_path):
         assert policy.step == 1 and len(policy.history) == config.n_obs
         policy.reset('reach the red target', seed=3)
         np.testing.assert_allclose(policy.act(observation), chunk)           # seeded sampling repeats
+
+
+def test_a_time_boxed_run_saves_weights_only_and_the_next_continues_it(episodes, tmp_path):
+    out, log = tmp_path / 'dp.pt', []
+    config = FlatTrainConfig(steps=3, batch=4, warmup=1)
+    run = dict(cache=tmp_path / 'cache', log=log.append, progress=False)
+    with pytest.raises(ValueError, match='stop_after_s'):
+        train('diffusion_policy', episodes, out, DP, config, stop_after_s=0, **run)
+    train('diffusion_policy', episodes, out, DP, config, stop_after_s=1e-6, **run)     # one step, then out
+    stopped = checkpoint.load(out)
+    assert stopped['step'] == 1 and stopped['optimizer'] == {}
+    assert [(r['from_step'], r['to_step'], r['fresh_optimizer']) for r in stopped['compute']] == [(0, 1, True)]
+    train('diffusion_policy', episodes, out, DP, config, **run)
+    assert any('from step 1 with fresh AdamW moments' in line for line in log), log
+    done = checkpoint.load(out)
+    assert done['step'] == 3 and [(r['from_step'], r['to_step']) for r in done['compute']] == [(0, 1), (1, 3)]
+    assert done['compute'][1]['threads'] == torch.get_num_threads() and checkpoint.thread_hours(done) > 0
+    assert not torch.equal(done['model']['unet.final.1.weight'], stopped['model']['unet.final.1.weight'])
 
 
 def test_checkpoint_refusals(checkpoints, episodes, tmp_path):

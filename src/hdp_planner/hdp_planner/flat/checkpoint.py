@@ -3,7 +3,13 @@
     {'format': FORMAT, 'version': VERSION, 'policy': 'diffusion_policy' | 'act',
      'config': {'model': ..., 'train': ...}, 'model': state dict (the action normaliser's range
      included; the frozen sentence encoder's weights never), 'optimizer': state dict, 'step': int,
-     'metrics': {...}, 'training_seeds': {task: [seed, ...]}}
+     'metrics': {...}, 'training_seeds': {task: [seed, ...]},
+     'compute': [{'from_step', 'to_step', 'seconds', 'threads', 'fresh_optimizer'}, ...]}
+
+'optimizer' is {} in a finished run's checkpoint and in one saved by a time-boxed run
+(``hdp train flat --stop-after-minutes``), which keeps it the size of a released file; 'compute'
+has one entry per training run that wrote the file (older files: none), so what a checkpoint
+cost is read from the checkpoint.
 
 Written and read by hdp_learning.checkpoints (atomic writes, size cap, weights-only loading, one
 CheckpointError line); the config rebuilds the network with no other file, and loading checks
@@ -44,13 +50,19 @@ def build_network(policy: str, config):
 
 
 def save(path, policy: str, model, optimizer, step: int, train_config: dict, metrics: dict,
-         training_seeds: dict) -> None:
+         training_seeds: dict, compute: list | None = None) -> None:
     """Write atomically (a crash mid-save leaves the previous checkpoint intact)."""
     checkpoints.save(path, {'format': FORMAT, 'version': VERSION, 'policy': policy,
                             'config': {'model': model.config.to_dict(), 'train': train_config},
                             'model': model.state_dict(),
                             'optimizer': optimizer.state_dict() if optimizer is not None else {},
-                            'step': int(step), 'metrics': metrics, 'training_seeds': training_seeds})
+                            'step': int(step), 'metrics': metrics, 'training_seeds': training_seeds,
+                            'compute': list(compute or [])})
+
+
+def thread_hours(stored: dict) -> float:
+    """CPU-thread-hours of training a loaded checkpoint records (sum of seconds x threads)."""
+    return sum(run['seconds'] * run['threads'] for run in stored.get('compute', [])) / 3600
 
 
 def load(path, policy: str | None = None) -> dict:

@@ -27,6 +27,11 @@ def configure_train(parser) -> None:
     parser.add_argument('--language-encoder', choices=('minilm', 'words'),
                         help='minilm: the frozen pretrained sentence encoder (default); words: learned words')
     parser.add_argument('--cache', type=Path, help='decoded-sample cache (default: <data>_flat_cache)')
+    parser.add_argument('--workers', type=int, default=1,
+                        help='processes decoding the episodes the cache lacks (default 1)')
+    parser.add_argument('--stop-after-minutes', type=float,
+                        help='stop after this much training and save the weights without the optimiser moments '
+                             '(a file the size of a released one); the same command continues it')
     parser.add_argument('--device', default='cpu', help='cpu (default), cuda, cuda:N or auto')
     parser.add_argument('--threads', type=int, help='torch CPU threads (default: torch decides)')
     parser.set_defaults(func=run_train)
@@ -64,7 +69,8 @@ def run_train(args) -> int:
     print(json.dumps({'policy': args.policy, **as_dict(configs)}), flush=True)
     try:
         train(args.policy, args.data, args.out, configs['model'], configs['train'], val_data=args.val_data,
-              device=torch_device(args.device), cache=args.cache)
+              device=torch_device(args.device), cache=args.cache, workers=args.workers,
+              stop_after_s=None if args.stop_after_minutes is None else 60 * args.stop_after_minutes)
     except (CheckpointError, EpisodeError, FileNotFoundError, ValueError) as err:
         print(f'hdp train flat: {err}', file=sys.stderr)
         return 1

@@ -150,15 +150,26 @@ class FlatDataset:
 
     @classmethod
     def from_directory(cls, data_dir, n_obs: int, horizon: int, width: int, height: int,
-                       period: float = CONTROL_PERIOD_S, cache_dir=None, progress: bool = True) -> FlatDataset:
-        """Every successful episode under ``data_dir``, decoded once and cached (default: <data_dir>_flat_cache)."""
+                       period: float = CONTROL_PERIOD_S, cache_dir=None, progress: bool = True,
+                       workers: int = 1) -> FlatDataset:
+        """Every successful episode under ``data_dir``, decoded once and cached (default: <data_dir>_flat_cache),
+        by ``workers`` processes (decoding a fresh collection of 1,100 episodes takes ~17 min on one)."""
+        from concurrent.futures import ProcessPoolExecutor
+        from functools import partial
+
         from tqdm import tqdm
         bags = list_episodes(data_dir)
         if not bags:
             raise FileNotFoundError(f'no successful episodes in {data_dir}')
+        if workers < 1:
+            raise ValueError(f'workers must be >= 1, got {workers}')
         cache_dir = Path(cache_dir) if cache_dir else default_cache_dir(data_dir)
-        return cls([load_flat_samples(bag, cache_dir, width, height, period)
-                    for bag in tqdm(bags, desc='episodes', unit='episode', disable=not progress)], n_obs, horizon)
+        load = partial(load_flat_samples, cache_dir=cache_dir, width=width, height=height, period=period)
+        bar = partial(tqdm, total=len(bags), desc='episodes', unit='episode', disable=not progress)
+        if workers == 1:
+            return cls([load(bag) for bag in bar(bags)], n_obs, horizon)
+        with ProcessPoolExecutor(workers) as pool:
+            return cls(list(bar(pool.map(load, bags, chunksize=4))), n_obs, horizon)
 
     def __len__(self) -> int:
         return len(self.index)

@@ -6,8 +6,11 @@ linear warmup then cosine decay to FINAL_LR_FRACTION, gradients clipped at norm 
 CURVE_EVERY steps the mean losses and the learning rate go to the curves CSV beside the
 checkpoint; with validation data, every val_every steps the policy's own predicted chunks on a
 fixed set of validation samples are scored (mean joint-target error in rad over the chunk,
-gripper accuracy) and logged too. The checkpoint records the training seeds; its last save
-drops the optimiser state (a finished run is not continued), so a released one is weights only.
+gripper accuracy) and logged too. The checkpoint records the training seeds and each run's
+compute; its last save drops the optimiser state (a finished run is not continued), so a released
+one is weights only. A time-boxed run (``stop_after_s``) saves weights only too, so a long run can
+travel between machines in files a repository takes; the next run continues it with fresh AdamW
+moments (the schedule and the batches go on from the step), and the checkpoint records where.
 """
 
 from __future__ import annotations
@@ -89,13 +92,18 @@ def _differences(now: dict, stored: dict) -> list[str]:
 
 
 def train(policy: str, data, out, model_config=None, train_config: FlatTrainConfig | None = None, val_data=None,
-          device: str = 'cpu', cache=None, log=print, progress: bool = True) -> dict:
+          device: str = 'cpu', cache=None, log=print, progress: bool = True, workers: int = 1,
+          stop_after_s: float | None = None) -> dict:
     """Train (or continue training) the flat ``policy`` checkpoint at ``out``; returns the last metrics.
 
     An existing ``out`` is continued when its policy and config match this run's (data, model,
     train: save_every and val_every aside); another is refused with the differences named.
+    ``workers``: processes decoding the episodes the cache lacks. ``stop_after_s``: stop after that
+    many seconds of training and save without the optimiser's moments (see the module docstring).
     """
     from tqdm import tqdm
+    if stop_after_s is not None and stop_after_s <= 0:
+        raise ValueError(f'stop_after_s must be > 0, got {stop_after_s}')
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     train_config = train_config or FlatTrainConfig()
@@ -104,7 +112,7 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
         model_config = dataclasses.replace(model_config, vocabulary=tuple(language.task_vocabulary()))
     shape = dict(n_obs=model_config.n_obs, horizon=model_config.horizon, width=model_config.image_width,
                  height=model_config.image_height, period=model_config.control_period_s)
-    dataset = FlatDataset.from_directory(data, cache_dir=cache, progress=progress, **shape)
+    dataset = FlatDataset.from_directory(data, cache_dir=cache, progress=progress, workers=workers, **shape)
     val = FlatDataset.from_directory(val_data, progress=progress, **shape) if val_data else None
     torch.manual_seed(train_config.seed)            # the initial weights
     model = checkpoint.build_network(policy, model_config).to(device)
@@ -115,7 +123,7 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
         (no_decay if parameter.ndim < 2 else decay).append(parameter)
     optimizer = torch.optim.AdamW([{'params': decay, 'weight_decay': train_config.weight_decay},
                                    {'params': no_decay, 'weight_decay': 0.0}], lr=train_config.lr)
-    step, metrics = 0, {}
+    step, metrics, compute, fresh_optimizer = 0, {}, [], True
     if out.exists():
         stored = checkpoint.load(out)
         wanted = json.loads(json.dumps({'model': model_config.to_dict(), 'train': recorded}))
@@ -126,14 +134,16 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
             raise checkpoint.CheckpointError(f'{out} was trained with another config ({"; ".join(changed)}); '
                                              'choose another --out or the same options')
         model.load_state_dict(checkpoint.build_model(stored, out).state_dict())
-        step, metrics = stored['step'], stored['metrics']
+        step, metrics, compute = stored['step'], stored['metrics'], list(stored.get('compute', []))
+        fresh_optimizer = not stored['optimizer']           # finished or time-boxed: weights only
         try:
-            if step < train_config.steps:       # a finished run keeps no optimiser state
+            if step < train_config.steps and not fresh_optimizer:
                 optimizer.load_state_dict(stored['optimizer'])
         except (KeyError, TypeError, ValueError, RuntimeError) as err:
             raise checkpoint.CheckpointError(f'{out}: a damaged optimiser state ({type(err).__name__} '
                                              'restoring it)') from None
-        log(f'continuing {out} from step {step}')
+        log(f'continuing {out} from step {step}' + (' with fresh AdamW moments (saved without them)'
+                                                     if fresh_optimizer and step < train_config.steps else ''))
     else:
         model.normaliser.fit(*dataset.action_range())
     training_seeds = dataset.training_seeds()
@@ -145,6 +155,14 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
     model.train()
     curves = CurveLog(curves_path(out), resume_step=step)
     started, running, counted = time.monotonic(), {}, 0
+    this_run = {'from_step': step, 'to_step': step, 'seconds': 0.0, 'threads': torch.get_num_threads(),
+                'fresh_optimizer': fresh_optimizer}
+
+    def save(with_optimizer: bool) -> None:
+        this_run.update(to_step=step, seconds=round(time.monotonic() - started, 1))
+        checkpoint.save(out, policy, model, optimizer if with_optimizer else None, step, recorded, metrics,
+                        training_seeds, [*compute, this_run])
+
     with tqdm(total=train_config.steps, initial=step, unit='step', disable=not progress, mininterval=30) as bar:
         while step < train_config.steps:
             for group in optimizer.param_groups:
@@ -175,6 +193,10 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
             if step % train_config.save_every == 0 or step == train_config.steps:
                 # The last save drops the optimiser's moments (twice the weights): a finished run is
                 # not continued, and the released checkpoint stays a few MB.
-                checkpoint.save(out, policy, model, optimizer if step < train_config.steps else None, step,
-                                recorded, metrics, training_seeds)
+                save(with_optimizer=step < train_config.steps)
+            if stop_after_s is not None and time.monotonic() - started >= stop_after_s and step < train_config.steps:
+                save(with_optimizer=False)
+                bar.write(f'stopped at step {step} after {stop_after_s / 60:g} min; saved {out} without the '
+                          'optimiser moments: the same command continues it')
+                break
     return metrics
