@@ -299,7 +299,7 @@ def test_harness_under_torchrun_shards_episodes_and_writes_one_result(checkpoint
     args = ['eval', 'hierarchy', '--agents', 'diffusion_policy,act', '--tasks', 'reach_target', '--episodes', '2',
             '--seed-start', '1000', '--phrasings', 'seen,heldout', '--flat-max-seconds', '0.5',
             '--flat-diffusion-policy-checkpoint', str(checkpoints['diffusion_policy']),
-            '--flat-act-checkpoint', str(checkpoints['act'])]
+            '--flat-act-checkpoint', str(checkpoints['act']), '--flat-act-ensemble', '0']
     one = subprocess.run([*HDP, *args, '--json', str(tmp_path / 'one.json')], text=True, capture_output=True,
                          timeout=600)
     assert one.returncode == 0, one.stderr[-3000:]
@@ -311,6 +311,7 @@ def test_harness_under_torchrun_shards_episodes_and_writes_one_result(checkpoint
     assert two.stdout.count('| agent |') == 1 and '2 process(es)' in two.stdout
     single, split = (json.loads((tmp_path / f'{n}.json').read_text()) for n in ('one', 'two'))
     assert (single['processes'], split['processes']) == (1, 2)
+    assert split['flat']['execution']['act'] == {'n_action_steps': ACT.horizon, 'ensemble': 0.0}   # the whole chunk
 
     def records(results):
         return [(r['agent'], r['seed'], r['phrasing'], r['control_steps'], r['joint_travel_rad'])
@@ -335,6 +336,27 @@ def test_dense_camera_episodes_train_a_policy_shown_every_frame(tmp_path):
     assert policy.data_camera_rate_hz == 10 and policy.cameras_as_trained == 'every'
 
 
+def test_inference_choices_change_on_a_copy_that_shares_the_weights(checkpoints):
+    """What validation chooses between without retraining: ACT ensembled or open-loop (LeRobot's
+    default runs the whole chunk), Diffusion Policy's DDIM steps."""
+    act = FlatPolicy.from_checkpoint(checkpoints['act'])
+    chunked = act.with_execution(ensemble=0.0, n_action_steps=act.config.horizon)
+    assert (act.config.ensemble, act.config.n_action_steps) == (ACT.ensemble, 1)              # unchanged
+    assert chunked.model.head.weight is act.model.head.weight and chunked.model.config is chunked.config
+    chunked.reset('reach the red target', seed=3)
+    observation = FlatObservation({c: np.zeros((96, 128, 3), np.uint8) for c in ('front', 'side')},
+                                  np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]), True, 0.08)
+    assert chunked.act(observation).shape == (act.config.horizon, 8)
+    with pytest.raises(ValueError, match='exceeds the horizon'):
+        act.with_execution(n_action_steps=act.config.horizon + 1)
+    with pytest.raises(ValueError, match=r"cannot change \['inference_steps'\]"):
+        act.with_execution(inference_steps=5)
+    dp = FlatPolicy.from_checkpoint(checkpoints['diffusion_policy'])
+    assert dp.with_execution(inference_steps=5).model.config.inference_steps == 5 != dp.model.config.inference_steps
+    with pytest.raises(ValueError, match='inference_steps must be >= 1'):
+        dp.with_execution(inference_steps=0)
+
+
 # --- the harness ----------------------------------------------------------------------------
 
 def test_harness_runs_the_flat_rows(checkpoints):
@@ -352,6 +374,9 @@ def test_harness_runs_the_flat_rows(checkpoints):
         assert record['queries'] == -(-record['control_steps'] // per_query) == len(record['predict_times'])
         assert record['joint_travel_rad'] > 0.01                  # the arm moved
     assert results['flat']['max_seconds'] == 1.0
+    assert results['flat']['execution'] == {'diffusion_policy': {'n_action_steps': DP.n_action_steps,
+                                                                 'inference_steps': DP.inference_steps},
+                                            'act': {'n_action_steps': 1, 'ensemble': ACT.ensemble}}
     assert results['flat']['cameras'] == {'diffusion_policy': 'rest', 'act': 'rest'}     # as trained
     assert '| act | seen |' in markdown_table(results)
     # 'every' renders a frame each control step.

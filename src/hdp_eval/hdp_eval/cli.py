@@ -252,8 +252,25 @@ def add_row_arguments(parser) -> None:
                         help='the diffusion_policy row (default: models/flat_diffusion_policy.pt, $HDP_MODELS_DIR)')
     parser.add_argument('--flat-act-checkpoint', type=Path,
                         help='the act row (default: models/flat_act.pt, $HDP_MODELS_DIR)')
+    parser.add_argument('--flat-act-ensemble', type=float, metavar='M',
+                        help="the act row's temporal ensembling, exp(-M i) weights per control step; 0: run each "
+                             'chunk open-loop, --flat-act-action-steps of it (default: as trained)')
+    parser.add_argument('--flat-act-action-steps', type=int, metavar='N',
+                        help="steps of each chunk the act row runs before it is asked again when it does not "
+                             'ensemble (default: as trained; the whole chunk when --flat-act-ensemble 0)')
+    parser.add_argument('--flat-diffusion-steps', type=int, metavar='N',
+                        help="the diffusion_policy row's DDIM steps (default: as trained)")
     parser.add_argument('--threads', type=int, help='torch CPU threads')
     parser.add_argument('--device', default='cpu', help='where the diffusers sample: cpu (default), cuda, cuda:N, auto')
+
+
+def flat_execution(args) -> dict:
+    """flat row name -> the inference changes its --flat-* flags ask for (FlatPolicy.with_execution)."""
+    act = {} if args.flat_act_ensemble is None else {'ensemble': args.flat_act_ensemble}
+    if args.flat_act_action_steps is not None:
+        act['n_action_steps'] = args.flat_act_action_steps
+    return {'act': act, 'diffusion_policy': ({} if args.flat_diffusion_steps is None
+                                             else {'inference_steps': args.flat_diffusion_steps})}
 
 
 def _reach_tolerance(text: str | None) -> tuple[float, float] | None:
@@ -295,6 +312,11 @@ def load_rows(args, agents: list[str], command: str, grounding: bool = True) -> 
             flat = {name: FlatPolicy.from_checkpoint(chosen[name] or default_path(f'flat_{name}.pt'), args.device,
                                                      policy=FLAT_AGENTS[name])
                     for name in agents if name in FLAT_AGENTS}
+            for name, changes in flat_execution(args).items():
+                if name in flat and changes.get('ensemble') == 0 and 'n_action_steps' not in changes:
+                    changes['n_action_steps'] = flat[name].config.horizon     # LeRobot's default: the whole chunk
+                if name in flat and changes:
+                    flat[name] = flat[name].with_execution(**changes)
     except ValueError as err:
         raise SystemExit(f'hdp eval {command}: {err}') from None
     return agent, low_levels, flat
@@ -342,7 +364,7 @@ def run_hierarchy(args) -> int:
     if 'flat' in results:
         cameras = ', '.join(f'{name} {when}' for name, when in results['flat']['cameras'].items())
         print(f"flat rows: {results['flat']['max_seconds']:g} s budget, new camera frames ({cameras}), "
-              f"inference p50 (ms): {results['flat']['predict_ms_p50']}")
+              f"inference {results['flat']['execution']}, p50 (ms): {results['flat']['predict_ms_p50']}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

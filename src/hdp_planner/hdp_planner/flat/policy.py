@@ -17,6 +17,7 @@ end of the i-th control period from now.
 from __future__ import annotations
 
 import collections
+import copy
 from typing import NamedTuple
 
 import numpy as np
@@ -66,6 +67,24 @@ class FlatPolicy:
             raise checkpoint.CheckpointError(f'{path}: data_camera_rate_hz must be a rate in Hz, got {rate!r}')
         return cls(stored['policy'], checkpoint.build_model(stored, path), device, stored['training_seeds'],
                    data_camera_rate_hz=float(rate))
+
+    def with_execution(self, **changes) -> FlatPolicy:
+        """This policy, its weights shared, with other inference choices of its config: ``ensemble``
+        and ``n_action_steps`` (ACT: temporal ensembling, or the chunk's first N steps open-loop),
+        ``inference_steps`` (Diffusion Policy's DDIM steps). ValueError for another field or a bad value."""
+        import dataclasses
+        allowed = {'ensemble', 'n_action_steps', 'inference_steps'} & {f.name for f in dataclasses.fields(self.config)}
+        unknown = set(changes) - allowed
+        if unknown:
+            raise ValueError(f'{self.name}: cannot change {sorted(unknown)} at inference; it can change {sorted(allowed)}')
+        if changes.get('inference_steps', 1) < 1:
+            raise ValueError(f'{self.name}: inference_steps must be >= 1')
+        config = dataclasses.replace(self.config, **changes)        # its own checks: steps <= horizon...
+        other = copy.copy(self)
+        other.model = copy.copy(self.model)                         # the same parameters, another config
+        other.model.config = other.config = config
+        other.reset('')
+        return other
 
     @property
     def control_period_s(self) -> float:
