@@ -2,6 +2,7 @@
 ACT networks, training, checkpoints, `hdp train flat`, and the closed-loop harness's flat rows."""
 
 import dataclasses
+import re
 import subprocess
 import sys
 
@@ -226,7 +227,8 @@ def test_a_time_boxed_run_saves_weights_only_and_the_next_continues_it(episodes,
     assert stopped['step'] == 1 and stopped['optimizer'] == {}
     assert [(r['from_step'], r['to_step'], r['fresh_optimizer']) for r in stopped['compute']] == [(0, 1, True)]
     train('diffusion_policy', episodes, out, DP, config, **run)
-    assert any('from step 1 with fresh AdamW moments' in line for line in log), log
+    assert any(re.fullmatch(rf'continuing {re.escape(str(out))} from step 1 \([0-9.]+ CPU-thread-hours so far\) '
+                            r'with fresh AdamW moments \(saved without them\)', line) for line in log), log
     done = checkpoint.load(out)
     assert done['step'] == 3 and [(r['from_step'], r['to_step']) for r in done['compute']] == [(0, 1), (1, 3)]
     assert done['compute'][1]['threads'] == torch.get_num_threads() and checkpoint.thread_hours(done) > 0

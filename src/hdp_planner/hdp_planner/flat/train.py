@@ -142,8 +142,9 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
         except (KeyError, TypeError, ValueError, RuntimeError) as err:
             raise checkpoint.CheckpointError(f'{out}: a damaged optimiser state ({type(err).__name__} '
                                              'restoring it)') from None
-        log(f'continuing {out} from step {step}' + (' with fresh AdamW moments (saved without them)'
-                                                     if fresh_optimizer and step < train_config.steps else ''))
+        log(f'continuing {out} from step {step} ({checkpoint.thread_hours(stored):.2f} CPU-thread-hours so far)'
+            + (' with fresh AdamW moments (saved without them)' if fresh_optimizer and step < train_config.steps
+               else ''))
     else:
         model.normaliser.fit(*dataset.action_range())
     training_seeds = dataset.training_seeds()
@@ -196,7 +197,8 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
                 save(with_optimizer=step < train_config.steps)
             if stop_after_s is not None and time.monotonic() - started >= stop_after_s and step < train_config.steps:
                 save(with_optimizer=False)
-                bar.write(f'stopped at step {step} after {stop_after_s / 60:g} min; saved {out} without the '
-                          'optimiser moments: the same command continues it')
+                spent = checkpoint.thread_hours({'compute': [*compute, this_run]})
+                bar.write(f'stopped at step {step} after {stop_after_s / 60:g} min ({spent:.2f} CPU-thread-hours in '
+                          f'all); saved {out} without the optimiser moments: the same command continues it')
                 break
     return metrics
