@@ -55,8 +55,6 @@ FLAT_AGENTS = {'diffusion_policy': 'diffusion_policy', 'act': 'act'}
 # hierarchical rows' budget is 8 segments, which their experts' 2-7 segments of 3-12 s fit.
 FLAT_MAX_SECONDS = 30.0
 FLAT_CAMERAS = ('rest', 'every')
-# The inference choices of a flat row the results record (FlatPolicy.with_execution can change them).
-FLAT_EXECUTION = ('n_action_steps', 'ensemble', 'inference_steps')
 # seen: training phrasings; heldout: the one kept out of training; paraphrase: the paraphrase set
 # (other verbs, word orders, object names); nonsense: made-up words (below). Each set is a row of
 # the table, so `--phrasings seen,heldout,paraphrase` (or all) reports them side by side.
@@ -266,9 +264,11 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
                'processes': world_size,
                'agents': {}}
     if flat:
+        from hdp_planner.flat.policy import EXECUTION_FIELDS
         results['flat'] = {'max_seconds': flat_max_seconds, 'cameras': cameras_when,
                            'control_period_s': {name: policy.control_period_s for name, policy in flat.items()},
-                           'execution': {name: {k: getattr(policy.config, k) for k in FLAT_EXECUTION
+                           # the inference choices each ran (FlatPolicy.with_execution can change them)
+                           'execution': {name: {k: getattr(policy.config, k) for k in EXECUTION_FIELDS
                                                 if hasattr(policy.config, k)} for name, policy in flat.items()}}
     for name in rows:
         results['agents'][name] = {}

@@ -51,10 +51,16 @@ def build_network(policy: str, config):
 
 def save(path, policy: str, model, optimizer, step: int, train_config: dict, metrics: dict,
          training_seeds: dict, compute: list | None = None) -> None:
-    """Write atomically (a crash mid-save leaves the previous checkpoint intact)."""
+    """Write atomically (a crash mid-save leaves the previous checkpoint intact). Without ``optimizer``
+    (a finished or time-boxed run) the parameters are stored as float16, halving the file for git;
+    buffers (the action range) stay float32."""
+    weights = model.state_dict()
+    if optimizer is None:
+        parameters = {name for name, _ in model.named_parameters()}
+        weights = {k: v.half() if k in parameters and v.is_floating_point() else v for k, v in weights.items()}
     checkpoints.save(path, {'format': FORMAT, 'version': VERSION, 'policy': policy,
                             'config': {'model': model.config.to_dict(), 'train': train_config},
-                            'model': model.state_dict(),
+                            'model': weights,
                             'optimizer': optimizer.state_dict() if optimizer is not None else {},
                             'step': int(step), 'metrics': metrics, 'training_seeds': training_seeds,
                             'compute': list(compute or [])})

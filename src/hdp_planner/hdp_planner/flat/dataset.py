@@ -152,8 +152,8 @@ class FlatDataset:
     def from_directory(cls, data_dir, n_obs: int, horizon: int, width: int, height: int,
                        period: float = CONTROL_PERIOD_S, cache_dir=None, progress: bool = True,
                        workers: int = 1) -> FlatDataset:
-        """Every successful episode under ``data_dir``, decoded once and cached (default: <data_dir>_flat_cache),
-        by ``workers`` processes (decoding a fresh collection of 1,100 episodes takes ~17 min on one)."""
+        """Every successful episode under ``data_dir``, decoded once and cached (default: <data_dir>_flat_cache);
+        ``workers`` processes decode the episodes the cache lacks."""
         from concurrent.futures import ProcessPoolExecutor
         from functools import partial
 

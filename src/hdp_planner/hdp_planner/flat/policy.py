@@ -28,6 +28,10 @@ from .dataset import CAMERAS, downscale, proprio
 from .encoders import observation_tensors
 
 
+# The inference choices with_execution may change (those a policy's config has).
+EXECUTION_FIELDS = ('n_action_steps', 'ensemble', 'inference_steps')
+
+
 class FlatObservation(NamedTuple):
     """What a flat policy sees at one control step: images camera -> (H, W, 3) uint8 RGB (any size:
     area-downscaled to the policy's), joint positions (7,) rad, the commanded gripper state, the
@@ -73,7 +77,7 @@ class FlatPolicy:
         and ``n_action_steps`` (ACT: temporal ensembling, or the chunk's first N steps open-loop),
         ``inference_steps`` (Diffusion Policy's DDIM steps). ValueError for another field or a bad value."""
         import dataclasses
-        allowed = {'ensemble', 'n_action_steps', 'inference_steps'} & {f.name for f in dataclasses.fields(self.config)}
+        allowed = set(EXECUTION_FIELDS) & {f.name for f in dataclasses.fields(self.config)}
         unknown = set(changes) - allowed
         if unknown:
             raise ValueError(f'{self.name}: cannot change {sorted(unknown)} at inference; it can change {sorted(allowed)}')

@@ -160,7 +160,7 @@ def train(policy: str, data, out, model_config=None, train_config: FlatTrainConf
                 'fresh_optimizer': fresh_optimizer}
 
     def save(with_optimizer: bool) -> None:
-        this_run.update(to_step=step, seconds=round(time.monotonic() - started, 1))
+        this_run.update(to_step=step, seconds=round(time.monotonic() - started, 3))
         checkpoint.save(out, policy, model, optimizer if with_optimizer else None, step, recorded, metrics,
                         training_seeds, [*compute, this_run])
 
