@@ -264,12 +264,10 @@ def evaluate(agent, low_levels: dict, tasks, episodes: int, seed_start: int, phr
                'processes': world_size,
                'agents': {}}
     if flat:
-        from hdp_planner.flat.policy import EXECUTION_FIELDS
         results['flat'] = {'max_seconds': flat_max_seconds, 'cameras': cameras_when,
                            'control_period_s': {name: policy.control_period_s for name, policy in flat.items()},
                            # the inference choices each ran (FlatPolicy.with_execution can change them)
-                           'execution': {name: {k: getattr(policy.config, k) for k in EXECUTION_FIELDS
-                                                if hasattr(policy.config, k)} for name, policy in flat.items()}}
+                           'execution': {name: policy.execution for name, policy in flat.items()}}
     for name in rows:
         results['agents'][name] = {}
         for phrasing in phrasings:

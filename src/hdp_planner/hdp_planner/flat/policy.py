@@ -77,7 +77,7 @@ class FlatPolicy:
         and ``n_action_steps`` (ACT: temporal ensembling, or the chunk's first N steps open-loop),
         ``inference_steps`` (Diffusion Policy's DDIM steps). ValueError for another field or a bad value."""
         import dataclasses
-        allowed = set(EXECUTION_FIELDS) & {f.name for f in dataclasses.fields(self.config)}
+        allowed = set(self.execution)
         unknown = set(changes) - allowed
         if unknown:
             raise ValueError(f'{self.name}: cannot change {sorted(unknown)} at inference; it can change {sorted(allowed)}')
@@ -89,6 +89,11 @@ class FlatPolicy:
         other.model.config = other.config = config
         other.reset('')
         return other
+
+    @property
+    def execution(self) -> dict:
+        """The inference choices this policy runs with (those of EXECUTION_FIELDS its config has)."""
+        return {k: getattr(self.config, k) for k in EXECUTION_FIELDS if hasattr(self.config, k)}
 
     @property
     def control_period_s(self) -> float:
